@@ -11,7 +11,14 @@ from . import errors
 from .config import GeometryConfig, MatchingConfig, NormalizationConfig
 from .geometry import PointGeometry, compute_geometry
 from .io import read_point_cloud, write_point_cloud
-from .registration import Descriptors, Registrar, RegistrationResult, describe, register
+from .registration import (
+    Descriptors,
+    PairMatches,
+    Registrar,
+    RegistrationResult,
+    describe,
+    register,
+)
 
 __version__ = "0.1.0"
 
@@ -20,6 +27,7 @@ __all__ = [
     "GeometryConfig",
     "MatchingConfig",
     "NormalizationConfig",
+    "PairMatches",
     "PointGeometry",
     "Registrar",
     "RegistrationResult",

@@ -26,7 +26,7 @@ import numpy as np
 from .errors import RegistrationError
 from .geometry import compute_geometry
 from .io import read_point_cloud
-from .matching import log_optimal_transport, mutual_matches
+from .matching import Matches, log_optimal_transport, mutual_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
 from .pose import FsrConfig, RansacConfig, evaluate_registration, fsr, ransac, rigid_transform_svd
@@ -120,6 +120,79 @@ class Descriptors:
     normals: np.ndarray
 
 
+@dataclass(frozen=True)
+class PairMatches:
+    """One pair taken through the learned pipeline up to the matches (:meth:`Registrar.match`).
+
+    Attributes:
+        source_points, target_points: (N, 3) / (M, 3) float64 clouds as given (user frame).
+        source_index, target_index: (Ns,) / (Mt,) int64, the points the network saw (all of
+            them unless subsampled to the working size).
+        normalization: maps the working subsets to network units and poses back.
+        source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
+        source_descriptors, target_descriptors: (Ns, d) / (Mt, d) float32 learned descriptors
+            (before the matcher's transformer), unit norm.
+        log_assignment: (Ns+1, Mt+1) float64 log-Sinkhorn output, dustbin last.
+        matches: mutual matches; indices into the working subsets.
+        timings: stage name -> seconds (load, subsample, geometry, network, matching).
+    """
+
+    source_points: np.ndarray
+    target_points: np.ndarray
+    source_index: np.ndarray
+    target_index: np.ndarray
+    normalization: PairNormalization
+    source_network: np.ndarray
+    target_network: np.ndarray
+    source_descriptors: np.ndarray
+    target_descriptors: np.ndarray
+    log_assignment: np.ndarray
+    matches: Matches
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def correspondences(self) -> np.ndarray:
+        """(K, 2) int64 rows [source_index, target_index] into the clouds as given."""
+        return np.stack(
+            [self.source_index[self.matches.source_index], self.target_index[self.matches.target_index]],
+            axis=1,
+        ).astype(np.int64)
+
+    @property
+    def subsampled(self) -> bool:
+        """True if either cloud was larger than the working size."""
+        return len(self.source_index) < len(self.source_points) or len(self.target_index) < len(
+            self.target_points
+        )
+
+    def pose(self, estimator: str = "fsr", seed: int = 0) -> np.ndarray:
+        """(4, 4) user-frame pose source -> target from the matches.
+
+        Args:
+            estimator: "fsr", "svd" (confidence-weighted) or "ransac".
+            seed: seeds FSR / RANSAC sampling.
+
+        Raises:
+            RegistrationError: fewer than 3 mutual matches.
+        """
+        if estimator not in POSE_ESTIMATORS:
+            raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
+        if len(self.matches) < MIN_MATCHES:
+            raise RegistrationError(
+                f"the network found {len(self.matches)} mutual matches, a pose needs at least "
+                f"{MIN_MATCHES}: the clouds may not overlap, or differ too much from the model's "
+                "training data"
+            )
+        network_pose = _estimate_pose(
+            self.source_network[self.matches.source_index],
+            self.target_network[self.matches.target_index],
+            self.matches.confidence,
+            estimator,
+            seed,
+        )
+        return self.normalization.pose_to_user_frame(network_pose)
+
+
 class Registrar:
     """Loads the network once and registers any number of pairs.
 
@@ -181,6 +254,49 @@ class Registrar:
             raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
         if refine is not None and refine not in ICP_METHODS:
             raise ValueError(f"refine {refine!r}: expected None or one of {ICP_METHODS}")
+        pair = self.match(source, target)
+        timings = dict(pair.timings)
+        with _timed(timings, "pose"):
+            pose = pair.pose(estimator, seed)
+
+        distance = (
+            float(max_correspondence_distance)
+            if max_correspondence_distance is not None
+            else DEFAULT_DISTANCE_FRACTION * pair.normalization.scale
+        )
+        if not distance > 0:
+            raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
+        refined = pose
+        if refine is not None:
+            with _timed(timings, "refinement"):
+                refined = icp(pair.source_points, pair.target_points, pose, distance, method=refine).transformation
+        with _timed(timings, "evaluation"):
+            evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
+        timings["total"] = sum(timings.values())
+
+        return RegistrationResult(
+            transformation=refined,
+            correspondences=pair.correspondences,
+            confidences=pair.matches.confidence,
+            fitness=evaluation.fitness,
+            inlier_rmse=evaluation.inlier_rmse,
+            max_correspondence_distance=distance,
+            pose_estimator=estimator,
+            refinement=refine,
+            transformation_before_refinement=pose,
+            subsampled=pair.subsampled,
+            source_points_used=len(pair.source_index),
+            target_points_used=len(pair.target_index),
+            timings=timings,
+        )
+
+    def match(self, source, target) -> PairMatches:
+        """The learned pipeline up to the matches: what :meth:`register` builds its pose from.
+
+        Useful to try several pose estimators on one pair, or to feed the descriptors to
+        another estimator (``benchmarks/`` does both). Takes the same clouds as
+        :meth:`register`; never raises for too few matches (check ``len(result.matches)``).
+        """
         timings: dict[str, float] = {}
         with _timed(timings, "load"):
             source_points = self._load(source, "source")
@@ -208,52 +324,18 @@ class Registrar:
                 scores, self.manifest.dustbin_score, self.manifest.matching.sinkhorn_iterations
             )
             matches = mutual_matches(log_assignment, self.manifest.matching.match_threshold)
-        if len(matches) < MIN_MATCHES:
-            raise RegistrationError(
-                f"the network found {len(matches)} mutual matches, a pose needs at least {MIN_MATCHES}: "
-                "the clouds may not overlap, or differ too much from the model's training data"
-            )
-        with _timed(timings, "pose"):
-            network_pose = _estimate_pose(
-                network_source[matches.source_index],
-                network_target[matches.target_index],
-                matches.confidence,
-                estimator,
-                seed,
-            )
-            pose = normalization.pose_to_user_frame(network_pose)
-
-        distance = (
-            float(max_correspondence_distance)
-            if max_correspondence_distance is not None
-            else DEFAULT_DISTANCE_FRACTION * normalization.scale
-        )
-        if not distance > 0:
-            raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
-        refined = pose
-        if refine is not None:
-            with _timed(timings, "refinement"):
-                refined = icp(source_points, target_points, pose, distance, method=refine).transformation
-        with _timed(timings, "evaluation"):
-            evaluation = evaluate_registration(source_points, target_points, distance, refined)
-        timings["total"] = sum(timings.values())
-
-        correspondences = np.stack(
-            [source_index[matches.source_index], target_index[matches.target_index]], axis=1
-        ).astype(np.int64)
-        return RegistrationResult(
-            transformation=refined,
-            correspondences=correspondences,
-            confidences=matches.confidence,
-            fitness=evaluation.fitness,
-            inlier_rmse=evaluation.inlier_rmse,
-            max_correspondence_distance=distance,
-            pose_estimator=estimator,
-            refinement=refine,
-            transformation_before_refinement=pose,
-            subsampled=len(source_index) < len(source_points) or len(target_index) < len(target_points),
-            source_points_used=len(source_index),
-            target_points_used=len(target_index),
+        return PairMatches(
+            source_points=source_points,
+            target_points=target_points,
+            source_index=source_index,
+            target_index=target_index,
+            normalization=normalization,
+            source_network=network_source,
+            target_network=network_target,
+            source_descriptors=source_descriptors,
+            target_descriptors=target_descriptors,
+            log_assignment=log_assignment,
+            matches=matches,
             timings=timings,
         )
 

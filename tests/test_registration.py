@@ -57,6 +57,20 @@ def test_other_estimators(registrar, demo_pair, estimator, bound_deg):
     assert rotation_error_deg(result.rotation, demo_pair.true_transformation[:3, :3]) < bound_deg
 
 
+def test_match_then_pose_equals_register(registrar, demo_pair):
+    """``Registrar.match`` + ``PairMatches.pose`` is exactly what ``register`` returns."""
+    pair = registrar.match(demo_pair.source, demo_pair.target)
+    for estimator in ("fsr", "svd", "ransac"):
+        result = registrar.register(demo_pair.source, demo_pair.target, estimator=estimator, seed=3)
+        assert np.array_equal(pair.pose(estimator, seed=3), result.transformation)
+    assert np.array_equal(pair.correspondences, result.correspondences)
+    assert pair.source_descriptors.shape == (len(pair.source_index), registrar.manifest.descriptor_dim)
+    assert np.allclose(np.linalg.norm(pair.source_descriptors, axis=1), 1.0, atol=1e-4)
+    assert pair.log_assignment.shape == (len(pair.source_index) + 1, len(pair.target_index) + 1)
+    with pytest.raises(ValueError, match="estimator"):
+        pair.pose("magic")
+
+
 def test_user_units_and_placement_do_not_matter(registrar, demo_pair):
     """A metre-scale copy placed far away gives the same rotation and the scaled translation."""
     scale, offset = 0.05, np.array([120.0, -30.0, 4.0])
