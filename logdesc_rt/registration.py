@@ -60,7 +60,8 @@ class RegistrationResult:
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
         subsampled: True if either cloud was larger than the working size.
         source_points_used, target_points_used: points the network saw per cloud.
-        timings: stage name -> seconds.
+        timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
+            refinement (if any), evaluation, and total (their sum).
     """
 
     transformation: np.ndarray
@@ -134,7 +135,8 @@ class PairMatches:
             (before the matcher's transformer), unit norm.
         log_assignment: (Ns+1, Mt+1) float64 log-Sinkhorn output, dustbin last.
         matches: mutual matches; indices into the working subsets.
-        timings: stage name -> seconds (load, subsample, geometry, network, matching).
+        timings: stage name -> seconds: load, subsample, geometry, descriptors (descriptor
+            network, both clouds), matcher (transformer + scores), matching (Sinkhorn + mutual).
     """
 
     source_points: np.ndarray
@@ -313,9 +315,10 @@ class Registrar:
         with _timed(timings, "geometry"):
             source_geometry = compute_geometry(network_source, self.manifest.geometry)
             target_geometry = compute_geometry(network_target, self.manifest.geometry)
-        with _timed(timings, "network"):
+        with _timed(timings, "descriptors"):
             source_descriptors = self.network.describe(source_geometry.edges, network_source)
             target_descriptors = self.network.describe(target_geometry.edges, network_target)
+        with _timed(timings, "matcher"):
             scores = self.network.match_scores(
                 source_descriptors, target_descriptors, source_geometry.normals, target_geometry.normals
             )

@@ -37,7 +37,7 @@ def test_demo_pair_is_registered_within_two_degrees(registrar, demo_pair):
     assert len(result.correspondences) == len(result.confidences) > 50
     assert np.all((result.confidences > 0) & (result.confidences <= 1))
     assert 0.5 < result.fitness <= 1.0
-    assert {"geometry", "network", "matching", "pose", "total"} <= set(result.timings)
+    assert {"geometry", "descriptors", "matcher", "matching", "pose", "total"} <= set(result.timings)
     assert not result.subsampled
 
 

@@ -1,0 +1,285 @@
+"""What every benchmark script shares: the pairs, the per-pair cache, the summary, the files.
+
+- :func:`modelnet10_test_pairs` builds exactly the pairs of ``training/evaluate.py`` (pair i
+  of a protocol is test shape i drawn with ``default_rng([seed, 0, i])``), so the figures of
+  both scripts refer to the same 908 pairs per protocol.
+- :func:`validation_pairs` builds pairs from the held-out *training* shapes (the training
+  run's validation split): the only pairs parameters may be tuned on.
+- :class:`ResultCache` appends one JSON line per (pair, method) and is read back on restart,
+  so a long run resumes where it stopped.
+- :func:`summarize` gives the paper's metrics per method, :func:`write_report` the markdown
+  and JSON files in ``benchmarks/results/``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # scripts run as `python benchmarks/x.py` from the project root
+    sys.path.insert(0, str(ROOT))
+
+from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg  # noqa: E402
+from logdesc_rt.synthetic import SOURCE_POINTS, Pair, make_pair  # noqa: E402
+
+DATA_ROOT = ROOT.parent / "shared" / "data"
+RESULTS = ROOT / "benchmarks" / "results"
+DEFAULT_SEED = 1234  # training/evaluate.py's DEFAULT_EVAL_SEED
+# A pair counts as registered when both errors are below these (network units = object radius).
+SUCCESS_ROTATION_DEG = 5.0
+SUCCESS_TRANSLATION_FRACTION = 0.05
+
+# The paper's published figures (ModelNet40, its Tables 1-3 and 5), shown beside ours.
+PUBLISHED = {
+    "noisy": {"label": "published LoGDesc, ModelNet40 (paper Table 2)",
+              "source": "LoGDesc paper, Table 2 (ModelNet40, noisy, full overlap)",
+              "rmse_r": 0.618, "mae_r": 0.187, "rmse_t": 0.00121, "mae_t": 0.00089},
+    "partial": {"label": "published LoGDesc, ModelNet40 (paper Tables 1, 3)",
+                "source": "LoGDesc paper, Tables 1 and 3 (ModelNet40, noisy + partial)",
+                "rmse_r": 0.774, "mae_r": 0.266, "rmse_t": 0.002, "mae_t": 0.001,
+                "precision": 0.920, "accuracy": 0.921, "recall": 0.919, "l_r": 0.95},
+    "fpfh_matching_partial": {"label": "published FPFH matching, ModelNet40 (paper Table 1)",
+                              "source": "LoGDesc paper, Table 1 (FPFH descriptor, ModelNet40 noisy + partial)",
+                              "precision": 0.721, "accuracy": 0.710, "recall": 0.712},
+    "bunny": {"label": "published LoGDesc, Stanford Bunny (paper Table 5)",
+              "source": "LoGDesc paper, Table 5 (Stanford Bunny, trained on ModelNet40)",
+              "rmse_r": 1.01, "mae_r": 0.73, "rmse_t": 0.0272, "mae_t": 0.0310},
+}
+
+
+# ----------------------------------------------------------------------------- pairs
+@dataclass(frozen=True)
+class BenchmarkPair:
+    """A pair with its ground truth and identity in the benchmark.
+
+    Attributes:
+        protocol: "clean", "noisy", "partial" (or a dataset-specific label).
+        index: pair number within the protocol.
+        name: human-readable identity (shape name, scan names).
+        source, target: (N, 3) / (M, 3) float64 user-frame clouds.
+        T_gt: (4, 4) true pose source -> target.
+        gt_match: (N,) int64 true target index per source point, -1 none; None if unknown.
+        scale: the object's radius in user units (successes are judged relative to it).
+    """
+
+    protocol: str
+    index: int
+    name: str
+    source: np.ndarray
+    target: np.ndarray
+    T_gt: np.ndarray
+    gt_match: np.ndarray | None
+    scale: float
+
+
+def _from_synthetic(pair: Pair, protocol: str, index: int, name: str) -> BenchmarkPair:
+    return BenchmarkPair(protocol, index, name, pair.source, pair.target, pair.T_gt, pair.gt_match_src,
+                         pair.normalization.scale)
+
+
+def _read_h5(folder: Path, split: str) -> tuple[np.ndarray, list[str]]:
+    from training.data import load_modelnet
+
+    data = load_modelnet(folder, split)
+    return np.asarray(data.points[:, :SOURCE_POINTS], dtype=np.float64), list(data.shape_ids)
+
+
+def modelnet10_test_pairs(
+    protocols: Iterable[str], count: int | None = None, seed: int = DEFAULT_SEED, data_root: Path = DATA_ROOT
+) -> Iterator[BenchmarkPair]:
+    """The evaluation pairs of ``training/evaluate.py``: test shape i, ``default_rng([seed, 0, i])``."""
+    shapes, names = _read_h5(Path(data_root) / "modelnet10_hdf5_1024", "test")
+    count = len(shapes) if count is None else min(count, len(shapes))
+    for protocol in protocols:
+        for index in range(count):
+            pair = make_pair(shapes[index], protocol, np.random.default_rng([seed, 0, index]))
+            yield _from_synthetic(pair, protocol, index, names[index])
+
+
+def validation_pairs(protocol: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT) -> list[BenchmarkPair]:
+    """Pairs from the training run's held-out validation shapes (never the test split)."""
+    from training.data import load_training_sources, split_training_shapes
+
+    shapes = split_training_shapes(load_training_sources(data_root))
+    pairs = []
+    for index in range(min(count, len(shapes.val))):
+        pair = make_pair(shapes.val[index], protocol, np.random.default_rng([seed, 7, index]))
+        pairs.append(_from_synthetic(pair, protocol, index, shapes.val_ids[index]))
+    return pairs
+
+
+# ----------------------------------------------------------------------------- per-pair records
+def pair_record(pair: BenchmarkPair, method: str, result) -> dict:
+    """One JSON-able line: the pose, its errors, the time and (if any) matching metrics."""
+    T = np.asarray(result.transformation, dtype=np.float64)
+    record = {
+        "protocol": pair.protocol,
+        "index": pair.index,
+        "name": pair.name,
+        "method": method,
+        "T_pred": T.tolist(),
+        "T_gt": pair.T_gt.tolist(),
+        "rotation_error_deg": float(rotation_error_deg(T[:3, :3], pair.T_gt[:3, :3])),
+        "translation_error": float(np.linalg.norm(T[:3, 3] - pair.T_gt[:3, 3])),
+        "scale": pair.scale,
+        "seconds": float(result.seconds),
+        "failed": bool(result.failed),
+    }
+    if result.pred_match is not None and pair.gt_match is not None:
+        metrics = matching_metrics(result.pred_match, pair.gt_match)
+        record.update({name: (None if math.isnan(value) else value) for name, value in metrics.items()})
+        record["match_count"] = int(np.count_nonzero(np.asarray(result.pred_match) >= 0))
+    return record
+
+
+class ResultCache:
+    """Append-only JSON-lines file of pair records; resumes an interrupted run."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.records: dict[tuple[str, int, str], dict] = {}
+        if self.path.exists():
+            for line in self.path.read_text().splitlines():
+                if line.strip():
+                    record = json.loads(line)
+                    self.records[(record["protocol"], record["index"], record["method"])] = record
+
+    def has(self, protocol: str, index: int, methods: Iterable[str]) -> bool:
+        return all((protocol, index, method) in self.records for method in methods)
+
+    def add(self, records: Iterable[dict]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self.path.open("a") as handle:
+            for record in records:
+                self.records[(record["protocol"], record["index"], record["method"])] = record
+                handle.write(json.dumps(record) + "\n")
+
+    def select(self, protocol: str, method: str, indices: Iterable[int]) -> list[dict]:
+        return [self.records[(protocol, i, method)] for i in indices if (protocol, i, method) in self.records]
+
+
+# ----------------------------------------------------------------------------- summaries
+def summarize(records: list[dict]) -> dict[str, float]:
+    """The paper's metrics over one method's records on one protocol.
+
+    Keys: rmse_r, mae_r (Euler angles, degrees), rmse_t, mae_t, l_r (mean isotropic rotation
+    error), l_r_median, l_t, success (share of pairs with rotation error < 5 deg and
+    translation error < 5 % of the object's radius), failed (pairs without a pose),
+    precision / accuracy / recall (mean over pairs, NaN where the method has no matches),
+    seconds_median, pairs.
+    """
+    predicted = np.array([r["T_pred"] for r in records])
+    truth = np.array([r["T_gt"] for r in records])
+    metrics = registration_metrics(predicted, truth)
+    metrics.pop("l_rmse")
+    rotation = np.array([r["rotation_error_deg"] for r in records])
+    translation = np.array([r["translation_error"] / r["scale"] for r in records])
+    metrics["l_r_median"] = float(np.median(rotation))
+    metrics["success"] = float(np.mean((rotation < SUCCESS_ROTATION_DEG) & (translation < SUCCESS_TRANSLATION_FRACTION)))
+    metrics["failed"] = int(sum(r["failed"] for r in records))
+    for name in ("precision", "accuracy", "recall"):
+        values = np.array([r.get(name) for r in records if r.get(name) is not None], dtype=np.float64)
+        metrics[name] = float(values.mean()) if len(values) else float("nan")
+    metrics["seconds_median"] = float(np.median([r["seconds"] for r in records]))
+    metrics["pairs"] = len(records)
+    return metrics
+
+
+COLUMNS = [
+    ("RMSE(R)", "rmse_r", "{:.3f}"),
+    ("MAE(R)", "mae_r", "{:.3f}"),
+    ("RMSE(t)", "rmse_t", "{:.4f}"),
+    ("MAE(t)", "mae_t", "{:.4f}"),
+    ("L_R mean", "l_r", "{:.2f}"),
+    ("L_R median", "l_r_median", "{:.3f}"),
+    ("success %", "success", "{:.1f}"),
+    ("P %", "precision", "{:.1f}"),
+    ("A %", "accuracy", "{:.1f}"),
+    ("R %", "recall", "{:.1f}"),
+    ("ms / pair", "seconds_median", "{:.0f}"),
+    ("failed", "failed", "{:d}"),
+    ("pairs", "pairs", "{:d}"),
+]
+PERCENT = {"success", "precision", "accuracy", "recall"}
+
+
+def markdown_table(rows: dict[str, dict], label: str = "method") -> str:
+    """A markdown table, one row per entry of ``rows`` (name -> metrics)."""
+    lines = [f"| {label} | " + " | ".join(title for title, _, _ in COLUMNS) + " |",
+             "| --- | " + " | ".join("---:" for _ in COLUMNS) + " |"]
+    for name, metrics in rows.items():
+        cells = []
+        for _, key, fmt in COLUMNS:
+            value = metrics.get(key)
+            if value is None or (isinstance(value, float) and not math.isfinite(value)):
+                cells.append("")
+                continue
+            if key in PERCENT:
+                value = 100.0 * value
+            if key == "seconds_median":
+                value = 1e3 * value
+            cells.append(fmt.format(value))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def machine_info() -> dict:
+    """Hardware and library versions, written into every result file."""
+    import onnxruntime
+
+    info = {
+        "cpu_count": os.cpu_count(),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "onnxruntime": onnxruntime.__version__,
+    }
+    try:
+        import open3d
+
+        info["open3d"] = open3d.__version__
+    except ImportError:
+        pass
+    try:
+        info["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                                        text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return info
+
+
+def command_line() -> str:
+    """The command that ran this script, as typed from the project root."""
+    script = Path(sys.argv[0]).resolve()
+    try:
+        script = script.relative_to(ROOT)
+    except ValueError:
+        pass
+    return " ".join(["python", str(script), *sys.argv[1:]])
+
+
+def write_report(stem: str, markdown: str, payload: dict, out: Path = RESULTS) -> tuple[Path, Path]:
+    """Write ``<stem>.md`` and ``<stem>.json`` into ``out``; return their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    md_path, json_path = out / f"{stem}.md", out / f"{stem}.json"
+    md_path.write_text(markdown if markdown.endswith("\n") else markdown + "\n")
+    json_path.write_text(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    return md_path, json_path
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value)}")

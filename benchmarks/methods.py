@@ -1,0 +1,350 @@
+"""The registration methods the benchmarks compare, behind one interface.
+
+Each method takes a pair of user-frame clouds and returns a :class:`MethodResult` (a pose and
+its wall time). The methods that share work run together on a pair, so that, e.g., the three
+pose estimators on logdesc-rt's matches see the same matches:
+
+- ``logdesc_fsr``, ``logdesc_svd``, ``logdesc_ransac``: the shipped pipeline
+  (:meth:`logdesc_rt.Registrar.match`), then FSR (the default), confidence-weighted SVD or our
+  RANSAC on its mutual matches;
+- ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
+  transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
+  MVP-RG table does;
+- ``fpfh_ransac``, ``fpfh_fgr``: Open3D FPFH with the same two Open3D estimators;
+- ``icp_point_to_plane``: Open3D point-to-plane ICP from the identity (user frame).
+
+Frames and units. Every descriptor-based method works in the runtime's network frame
+(:class:`logdesc_rt.normalization.PairNormalization`: each cloud centred, one shared scale that
+puts the larger radius at 1), and its pose is mapped back to the user frame exactly. So the
+Open3D parameters below are fractions of the object's radius, which transfers them from
+ModelNet (unit sphere) to the Bunny scans (metres) unchanged. ICP alone runs in the user frame
+from the identity, as a user would run it; its distance threshold is a fraction of the pair's
+radius too.
+
+Open3D parameters (``FpfhParameters``) were chosen on *validation* pairs (held-out training
+shapes, never the test split) by ``benchmarks/tune_open3d.py``; the chosen values and the
+sweep are in ``benchmarks/results/open3d_tuning.md``.
+
+Timing: ``seconds`` is the method's own wall time on the pair, network included; the logdesc
+estimators each report the shared matching time plus their own pose time, and the
+descriptor-only methods the geometry + descriptor network time plus the Open3D estimator.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from logdesc_rt import Registrar
+from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
+from logdesc_rt.matching import matches_as_array
+from logdesc_rt.normalization import PairNormalization
+
+LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
+LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
+DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
+FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
+ICP_METHODS = ("icp_point_to_plane",)
+ALL_METHODS = LOGDESC_METHODS + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS
+OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS
+
+TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
+
+
+@dataclass(frozen=True)
+class FpfhParameters:
+    """Open3D feature / estimator parameters, in network units (the larger cloud's radius = 1).
+
+    Open3D's tutorial ties everything to one voxel size v: normals within 2 v, FPFH within 5 v,
+    RANSAC inliers within 1.5 v, FGR's correspondence distance 0.5 v. We keep those ratios and
+    tune only ``voxel`` (no downsampling: every method sees the same points).
+
+    Attributes:
+        voxel: v, network units.
+        ransac_iterations, ransac_confidence: Open3D's RANSACConvergenceCriteria (its
+            tutorial's 100000 / 0.999).
+        icp_distance: ICP correspondence distance, network units (scaled back to user units).
+    """
+
+    voxel: float = 0.05
+    ransac_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    icp_distance: float = 0.1
+
+    @property
+    def normal_radius(self) -> float:
+        return 2.0 * self.voxel
+
+    @property
+    def feature_radius(self) -> float:
+        return 5.0 * self.voxel
+
+    @property
+    def ransac_distance(self) -> float:
+        return 1.5 * self.voxel
+
+    @property
+    def fgr_distance(self) -> float:
+        return 0.5 * self.voxel
+
+    @classmethod
+    def tuned(cls) -> FpfhParameters:
+        """The parameters ``tune_open3d.py`` chose on validation pairs (defaults if absent)."""
+        if TUNING_FILE.exists():
+            chosen = json.loads(TUNING_FILE.read_text())["chosen"]
+            return cls(**chosen)
+        return cls()
+
+
+@dataclass
+class MethodResult:
+    """One method on one pair.
+
+    Attributes:
+        transformation: (4, 4) float64 predicted pose source -> target, user frame; the
+            identity when the method failed.
+        seconds: wall time of the method on this pair.
+        failed: True when the method produced no pose (too few matches, Open3D error).
+        pred_match: (N,) int64 predicted target index per source point (-1 unmatched), for
+            methods whose matches are meaningful (logdesc's Sinkhorn matches, mutual
+            nearest neighbours in descriptor space); None otherwise.
+    """
+
+    transformation: np.ndarray
+    seconds: float
+    failed: bool = False
+    pred_match: np.ndarray | None = None
+
+
+def failed_result(seconds: float) -> MethodResult:
+    return MethodResult(np.eye(4), seconds, failed=True)
+
+
+# ----------------------------------------------------------------------------- Open3D helpers
+def _open3d():
+    """Import Open3D lazily: it is a benchmark-only dependency (``pip install open3d``)."""
+    import open3d
+
+    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
+    return open3d
+
+
+def open3d_available() -> bool:
+    try:
+        _open3d()
+    except ImportError:
+        return False
+    return True
+
+
+def _cloud(points: np.ndarray, normal_radius: float | None = None):
+    o3d = _open3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normal_radius is not None:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
+    return cloud
+
+
+def _feature(descriptors: np.ndarray):
+    """An Open3D Feature from (N, d) descriptors (Open3D stores them d x N)."""
+    feature = _open3d().pipelines.registration.Feature()
+    feature.data = np.ascontiguousarray(np.asarray(descriptors, dtype=np.float64).T)
+    return feature
+
+
+def fpfh_descriptors(cloud, parameters: FpfhParameters) -> np.ndarray:
+    """(N, 33) FPFH of an Open3D cloud that has normals."""
+    o3d = _open3d()
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=parameters.feature_radius, max_nn=100)
+    return np.asarray(o3d.pipelines.registration.compute_fpfh_feature(cloud, search).data).T.copy()
+
+
+def feature_ransac(source, target, source_features, target_features, parameters: FpfhParameters, seed: int):
+    """Open3D RANSAC on feature matches (its tutorial's checkers), network units -> (4, 4)."""
+    o3d = _open3d()
+    registration = o3d.pipelines.registration
+    o3d.utility.random.seed(int(seed))
+    distance = parameters.ransac_distance
+    result = registration.registration_ransac_based_on_feature_matching(
+        source,
+        target,
+        _feature(source_features),
+        _feature(target_features),
+        False,  # mutual_filter: off, as in Open3D's tutorial
+        distance,
+        registration.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            registration.CorrespondenceCheckerBasedOnDistance(distance),
+        ],
+        registration.RANSACConvergenceCriteria(parameters.ransac_iterations, parameters.ransac_confidence),
+    )
+    return np.asarray(result.transformation)
+
+
+def feature_fgr(source, target, source_features, target_features, parameters: FpfhParameters):
+    """Open3D Fast Global Registration on feature matches, network units -> (4, 4)."""
+    registration = _open3d().pipelines.registration
+    option = registration.FastGlobalRegistrationOption(maximum_correspondence_distance=parameters.fgr_distance)
+    result = registration.registration_fgr_based_on_feature_matching(
+        source, target, _feature(source_features), _feature(target_features), option
+    )
+    return np.asarray(result.transformation)
+
+
+def mutual_nearest_descriptors(source_features: np.ndarray, target_features: np.ndarray) -> np.ndarray:
+    """(N,) int64 target index of each source point's mutual nearest neighbour in feature
+    space (Euclidean), -1 where the nearest neighbour is not mutual."""
+    source_features = np.asarray(source_features, dtype=np.float64)
+    target_features = np.asarray(target_features, dtype=np.float64)
+    # ||a - b||^2 up to the per-row constant ||a||^2, which does not change the argmin over b.
+    distances = np.sum(target_features**2, axis=1)[None, :] - 2.0 * source_features @ target_features.T
+    best_target = distances.argmin(axis=1)
+    full = distances + np.sum(source_features**2, axis=1)[:, None]
+    best_source = full.argmin(axis=0)
+    mutual = best_source[best_target] == np.arange(len(source_features))
+    return np.where(mutual, best_target, -1).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- the runner
+class MethodRunner:
+    """Runs the selected methods on pairs; loads the network once.
+
+    Args:
+        methods: names from :data:`ALL_METHODS`.
+        parameters: Open3D parameters (default: the tuned ones).
+        threads: onnxruntime threads (None: all cores).
+        registrar: an existing :class:`Registrar` to reuse.
+    """
+
+    def __init__(
+        self,
+        methods=ALL_METHODS,
+        parameters: FpfhParameters | None = None,
+        threads: int | None = None,
+        registrar: Registrar | None = None,
+    ) -> None:
+        unknown = set(methods) - set(ALL_METHODS)
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; expected some of {ALL_METHODS}")
+        self.methods = tuple(methods)
+        self.parameters = parameters or FpfhParameters.tuned()
+        needs_network = any(m.startswith("logdesc") for m in self.methods)
+        self.registrar = registrar or (Registrar(threads=threads) if needs_network else None)
+
+    def run(self, source: np.ndarray, target: np.ndarray, seed: int = 0) -> dict[str, MethodResult]:
+        """All selected methods on one pair of user-frame clouds (N, 3) / (M, 3)."""
+        results: dict[str, MethodResult] = {}
+        if any(m.startswith("logdesc") for m in self.methods):
+            results.update(self._logdesc(source, target, seed))
+        if any(m.startswith("fpfh") for m in self.methods):
+            results.update(self._fpfh(source, target, seed))
+        if "icp_point_to_plane" in self.methods:
+            results["icp_point_to_plane"] = self._icp(source, target)
+        return {name: results[name] for name in self.methods}
+
+    def _logdesc(self, source, target, seed) -> dict[str, MethodResult]:
+        start = time.perf_counter()
+        pair = self.registrar.match(source, target)
+        match_seconds = time.perf_counter() - start
+        results = {}
+        if len(pair.source_index) != len(source) or len(pair.target_index) != len(target):
+            raise ValueError("benchmark clouds must not exceed the model's working size (no subsampling)")
+        pred_match = matches_as_array(pair.matches, len(source))
+        for estimator in LOGDESC_ESTIMATORS:
+            name = f"logdesc_{estimator}"
+            if name not in self.methods:
+                continue
+            start = time.perf_counter()
+            try:
+                pose = pair.pose(estimator, seed=seed)
+                results[name] = MethodResult(pose, match_seconds + time.perf_counter() - start, False, pred_match)
+            except (RegistrationError, InvalidPointCloudError):
+                results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
+        if any(m in self.methods for m in DESCRIPTOR_METHODS):
+            describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
+            results.update(
+                self._descriptor_estimators(
+                    pair.source_network,
+                    pair.target_network,
+                    pair.source_descriptors,
+                    pair.target_descriptors,
+                    pair.normalization,
+                    describe_seconds,
+                    seed,
+                    prefix="logdesc_desc",
+                )
+            )
+        return results
+
+    def _fpfh(self, source, target, seed) -> dict[str, MethodResult]:
+        start = time.perf_counter()
+        normalization = PairNormalization.fit(source, target)
+        source_cloud = _cloud(normalization.source_to_network(source), self.parameters.normal_radius)
+        target_cloud = _cloud(normalization.target_to_network(target), self.parameters.normal_radius)
+        source_features = fpfh_descriptors(source_cloud, self.parameters)
+        target_features = fpfh_descriptors(target_cloud, self.parameters)
+        feature_seconds = time.perf_counter() - start
+        return self._descriptor_estimators(
+            source_cloud,
+            target_cloud,
+            source_features,
+            target_features,
+            normalization,
+            feature_seconds,
+            seed,
+            prefix="fpfh",
+        )
+
+    def _descriptor_estimators(
+        self, source, target, source_features, target_features, normalization, feature_seconds, seed, prefix
+    ) -> dict[str, MethodResult]:
+        """RANSAC and FGR (Open3D) on feature matches; clouds in network units."""
+        if not hasattr(source, "points"):
+            source, target = _cloud(source), _cloud(target)
+        pred_match = mutual_nearest_descriptors(source_features, target_features)
+        results = {}
+        for name, estimate in (
+            (f"{prefix}_ransac", lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
+            (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters)),
+        ):
+            if name not in self.methods:
+                continue
+            start = time.perf_counter()
+            pose = normalization.pose_to_user_frame(estimate())
+            results[name] = MethodResult(pose, feature_seconds + time.perf_counter() - start, False, pred_match)
+        return results
+
+    def _icp(self, source, target) -> MethodResult:
+        """Open3D point-to-plane ICP from the identity, in the user frame."""
+        registration = _open3d().pipelines.registration
+        start = time.perf_counter()
+        scale = PairNormalization.fit(source, target).scale
+        source_cloud = _cloud(source)
+        target_cloud = _cloud(target, self.parameters.normal_radius * scale)
+        result = registration.registration_icp(
+            source_cloud,
+            target_cloud,
+            self.parameters.icp_distance * scale,
+            np.eye(4),
+            registration.TransformationEstimationPointToPlane(),
+            registration.ICPConvergenceCriteria(max_iteration=50),
+        )
+        return MethodResult(np.asarray(result.transformation).copy(), time.perf_counter() - start)
+
+
+def parameters_dict(parameters: FpfhParameters) -> dict:
+    """The parameters with their derived radii, for result files."""
+    values = asdict(parameters)
+    values.update(
+        normal_radius=parameters.normal_radius,
+        feature_radius=parameters.feature_radius,
+        ransac_distance=parameters.ransac_distance,
+        fgr_distance=parameters.fgr_distance,
+    )
+    return values
