@@ -1,0 +1,114 @@
+"""The benchmark harness: matching and summary helpers, the resumable cache, the method runner
+and one end-to-end run of the ModelNet10 accuracy script on a single pair."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import common  # noqa: E402
+import methods  # noqa: E402
+
+
+def _record(rotation_deg: float, translation: float, failed: bool = False, index: int = 0) -> dict:
+    angle = np.radians(rotation_deg)
+    T_pred = np.eye(4)
+    T_pred[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    T_pred[0, 3] = translation
+    return {"protocol": "p", "index": index, "method": "m", "T_pred": T_pred.tolist(), "T_gt": np.eye(4).tolist(),
+            "rotation_error_deg": rotation_deg, "translation_error": translation, "scale": 1.0,
+            "seconds": 0.1, "failed": failed}
+
+
+def test_mutual_nearest_descriptors_recovers_a_permutation_and_drops_one_sided_pairs():
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(50, 8))
+    permutation = rng.permutation(50)
+    target = np.empty_like(source)
+    target[permutation] = source + rng.normal(scale=1e-3, size=source.shape)
+    assert np.array_equal(methods.mutual_nearest_descriptors(source, target), permutation)
+
+    # Two sources share one nearest target: only the nearer of them keeps the match.
+    source = np.array([[0.0], [0.1], [5.0]])
+    target = np.array([[0.05 + 0.01], [5.0]])
+    assert methods.mutual_nearest_descriptors(source, target).tolist() == [-1, 0, 1]
+
+
+def test_summarize_counts_successes_and_failures():
+    records = [_record(0.0, 0.0), _record(2.0, 0.01), _record(30.0, 0.0), _record(1.0, 0.2, failed=True)]
+    summary = common.summarize(records)
+    assert summary["pairs"] == 4
+    assert summary["success"] == pytest.approx(0.5)  # 30 deg and 0.2 radius fail
+    assert summary["failed"] == 1
+    assert summary["l_r_median"] == pytest.approx(1.5)
+    assert summary["mae_r"] == pytest.approx((2.0 + 30.0 + 1.0) / 12)  # one Euler angle each
+    assert np.isnan(summary["precision"])  # no method matches in these records
+
+
+def test_result_cache_resumes(tmp_path):
+    path = tmp_path / "pairs.jsonl"
+    cache = common.ResultCache(path)
+    cache.add([_record(1.0, 0.0, index=3)])
+    reloaded = common.ResultCache(path)
+    assert reloaded.has("p", 3, ["m"])
+    assert not reloaded.has("p", 4, ["m"])
+    assert reloaded.select("p", "m", [3, 4])[0]["rotation_error_deg"] == 1.0
+
+
+def test_runner_rejects_unknown_methods():
+    with pytest.raises(ValueError, match="unknown methods"):
+        methods.MethodRunner(["magic"])
+
+
+def test_logdesc_estimators_share_one_set_of_matches(shared_data):
+    pair = next(common.modelnet10_test_pairs(["partial"], count=2))
+    runner = methods.MethodRunner(methods.LOGDESC_METHODS)
+    results = runner.run(pair.source, pair.target, seed=0)
+    assert list(results) == list(methods.LOGDESC_METHODS)
+    fsr_matches = results["logdesc_fsr"].pred_match
+    for result in results.values():
+        assert np.array_equal(result.pred_match, fsr_matches)
+        assert not result.failed
+    record = common.pair_record(pair, "logdesc_fsr", results["logdesc_fsr"])
+    # Shape 0 of the test split, noisy + partial: the bundled model measured ~4 deg here.
+    assert record["rotation_error_deg"] < 10.0
+    assert 0.0 < record["precision"] <= 1.0
+
+
+def test_tuned_open3d_parameters_are_the_committed_choice():
+    chosen = json.loads(methods.TUNING_FILE.read_text())["chosen"]
+    assert methods.FpfhParameters.tuned() == methods.FpfhParameters(**chosen)
+
+
+def test_open3d_baselines_run_and_return_rigid_poses(shared_data):
+    pytest.importorskip("open3d")
+    pair = next(common.modelnet10_test_pairs(["clean"], count=1))
+    results = methods.MethodRunner(methods.FPFH_METHODS + methods.ICP_METHODS).run(pair.source, pair.target)
+    for name, result in results.items():
+        rotation = result.transformation[:3, :3]
+        assert np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6), name
+        assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-6), name
+
+
+def test_accuracy_script_end_to_end_on_one_pair(shared_data, tmp_path):
+    import accuracy_modelnet
+
+    code = accuracy_modelnet.main(
+        ["--pairs", "1", "--protocols", "partial", "--methods", "logdesc_fsr", "logdesc_svd", "--out", str(tmp_path)]
+    )
+    assert code == 0
+    payload = json.loads((tmp_path / "modelnet10_accuracy.json").read_text())
+    assert payload["summary"]["partial"]["logdesc_fsr"]["pairs"] == 1
+    assert "published LoGDesc" in (tmp_path / "modelnet10_accuracy.md").read_text()
+    assert (tmp_path / "modelnet10_error_cdf.png").stat().st_size > 1000
+    # A second run reuses the cached pair instead of recomputing it.
+    lines = (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines()
+    accuracy_modelnet.main(["--pairs", "1", "--protocols", "partial", "--methods", "logdesc_fsr", "--out", str(tmp_path)])
+    assert (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines() == lines
