@@ -11,7 +11,11 @@ pose estimators on logdesc-rt's matches see the same matches:
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
   MVP-RG table does;
 - ``fpfh_ransac``, ``fpfh_fgr``: Open3D FPFH with the same two Open3D estimators;
-- ``icp_point_to_plane``: Open3D point-to-plane ICP from the identity (user frame).
+- ``icp_point_to_plane``: Open3D point-to-plane ICP from the identity (user frame);
+- ``logdesc_fsr_icp``, ``fpfh_fgr_icp``: the best learned and the best classical coarse pose,
+  each refined by the *same* ICP (the package's point-to-plane ICP, what
+  ``register(..., refine="point_to_plane")`` runs, correspondences within 5 % of the radius),
+  so the pair differs only in where ICP starts.
 
 Frames and units. Every descriptor-based method works in the runtime's network frame
 (:class:`logdesc_rt.normalization.PairNormalization`: each cloud centred, one shared scale that
@@ -43,13 +47,16 @@ from logdesc_rt import Registrar
 from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
 from logdesc_rt.matching import matches_as_array
 from logdesc_rt.normalization import PairNormalization
+from logdesc_rt.refinement import icp
+from logdesc_rt.registration import DEFAULT_DISTANCE_FRACTION
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
 ICP_METHODS = ("icp_point_to_plane",)
-ALL_METHODS = LOGDESC_METHODS + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS
+REFINED_METHODS = ("logdesc_fsr_icp", "fpfh_fgr_icp")
+ALL_METHODS = LOGDESC_METHODS + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
 OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
@@ -244,6 +251,9 @@ class MethodRunner:
             results.update(self._logdesc(source, target, seed))
         if any(m.startswith("fpfh") for m in self.methods):
             results.update(self._fpfh(source, target, seed))
+            if "fpfh_fgr_icp" in self.methods:
+                scale = PairNormalization.fit(source, target).scale
+                results["fpfh_fgr_icp"] = self._refined(source, target, results["fpfh_fgr"], scale)
         if "icp_point_to_plane" in self.methods:
             results["icp_point_to_plane"] = self._icp(source, target)
         return {name: results[name] for name in self.methods}
@@ -256,9 +266,12 @@ class MethodRunner:
         if len(pair.source_index) != len(source) or len(pair.target_index) != len(target):
             raise ValueError("benchmark clouds must not exceed the model's working size (no subsampling)")
         pred_match = matches_as_array(pair.matches, len(source))
+        wanted = set(self.methods)
+        if "logdesc_fsr_icp" in wanted:
+            wanted.add("logdesc_fsr")
         for estimator in LOGDESC_ESTIMATORS:
             name = f"logdesc_{estimator}"
-            if name not in self.methods:
+            if name not in wanted:
                 continue
             start = time.perf_counter()
             try:
@@ -266,6 +279,8 @@ class MethodRunner:
                 results[name] = MethodResult(pose, match_seconds + time.perf_counter() - start, False, pred_match)
             except (RegistrationError, InvalidPointCloudError):
                 results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
+        if "logdesc_fsr_icp" in self.methods:
+            results["logdesc_fsr_icp"] = self._refined(source, target, results["logdesc_fsr"], pair.normalization.scale)
         if any(m in self.methods for m in DESCRIPTOR_METHODS):
             describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
             results.update(
@@ -309,16 +324,25 @@ class MethodRunner:
             source, target = _cloud(source), _cloud(target)
         pred_match = mutual_nearest_descriptors(source_features, target_features)
         results = {}
+        wanted = set(self.methods) | ({f"{prefix}_fgr"} if f"{prefix}_fgr_icp" in self.methods else set())
         for name, estimate in (
             (f"{prefix}_ransac", lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
             (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters)),
         ):
-            if name not in self.methods:
+            if name not in wanted:
                 continue
             start = time.perf_counter()
             pose = normalization.pose_to_user_frame(estimate())
             results[name] = MethodResult(pose, feature_seconds + time.perf_counter() - start, False, pred_match)
         return results
+
+    @staticmethod
+    def _refined(source, target, coarse: MethodResult, scale: float) -> MethodResult:
+        """The package's point-to-plane ICP from a coarse pose (full clouds, user frame)."""
+        start = time.perf_counter()
+        refined = icp(source, target, coarse.transformation, DEFAULT_DISTANCE_FRACTION * scale).transformation
+        seconds = coarse.seconds + time.perf_counter() - start
+        return MethodResult(refined, seconds, coarse.failed, coarse.pred_match)
 
     def _icp(self, source, target) -> MethodResult:
         """Open3D point-to-plane ICP from the identity, in the user frame."""

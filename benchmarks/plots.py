@@ -16,6 +16,8 @@ STYLES = {
     "fpfh_ransac": ("tab:blue", "-"),
     "fpfh_fgr": ("tab:cyan", "--"),
     "icp_point_to_plane": ("tab:gray", "-."),
+    "logdesc_fsr_icp": ("darkred", "-."),
+    "fpfh_fgr_icp": ("navy", "-."),
 }
 
 

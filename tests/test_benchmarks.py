@@ -69,9 +69,9 @@ def test_runner_rejects_unknown_methods():
 
 def test_logdesc_estimators_share_one_set_of_matches(shared_data):
     pair = next(common.modelnet10_test_pairs(["partial"], count=2))
-    runner = methods.MethodRunner(methods.LOGDESC_METHODS)
+    runner = methods.MethodRunner(methods.LOGDESC_METHODS + ("logdesc_fsr_icp",))
     results = runner.run(pair.source, pair.target, seed=0)
-    assert list(results) == list(methods.LOGDESC_METHODS)
+    assert list(results) == [*methods.LOGDESC_METHODS, "logdesc_fsr_icp"]
     fsr_matches = results["logdesc_fsr"].pred_match
     for result in results.values():
         assert np.array_equal(result.pred_match, fsr_matches)
@@ -80,6 +80,10 @@ def test_logdesc_estimators_share_one_set_of_matches(shared_data):
     # Shape 0 of the test split, noisy + partial: the bundled model measured ~4 deg here.
     assert record["rotation_error_deg"] < 10.0
     assert 0.0 < record["precision"] <= 1.0
+    # ICP starts from FSR's pose: the refined pose differs, but stays close.
+    refined = results["logdesc_fsr_icp"].transformation
+    assert not np.array_equal(refined, results["logdesc_fsr"].transformation)
+    assert common.pair_record(pair, "logdesc_fsr_icp", results["logdesc_fsr_icp"])["rotation_error_deg"] < 10.0
 
 
 def test_tuned_open3d_parameters_are_the_committed_choice():
@@ -90,7 +94,9 @@ def test_tuned_open3d_parameters_are_the_committed_choice():
 def test_open3d_baselines_run_and_return_rigid_poses(shared_data):
     pytest.importorskip("open3d")
     pair = next(common.modelnet10_test_pairs(["clean"], count=1))
-    results = methods.MethodRunner(methods.FPFH_METHODS + methods.ICP_METHODS).run(pair.source, pair.target)
+    selected = methods.FPFH_METHODS + methods.ICP_METHODS + ("fpfh_fgr_icp",)
+    results = methods.MethodRunner(selected).run(pair.source, pair.target)
+    assert list(results) == list(selected)
     for name, result in results.items():
         rotation = result.transformation[:3, :3]
         assert np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6), name
