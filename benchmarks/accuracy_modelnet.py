@@ -21,12 +21,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from common import (  # noqa: E402
     DEFAULT_SEED,
     PUBLISHED,
     RESULTS,
+    SUCCESS_ROTATION_DEG,
+    SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
     command_line,
     machine_info,
@@ -54,6 +57,40 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
     return parser
+
+
+def class_breakdown(cache: ResultCache, methods: list[str], args) -> list[str]:
+    """Markdown lines: success rate per ModelNet10 class, and how logdesc's failures look.
+
+    The class is the shape name's prefix (``chair_0890`` -> chair). A failure is a pair
+    outside the success bounds; its rotation error tells a symmetric flip (near 90 or 180
+    degrees) from a plain miss.
+    """
+    protocol = "partial" if "partial" in args.protocols else args.protocols[0]
+    by_method = {m: cache.select(protocol, m, range(args.pairs)) for m in methods}
+    classes = sorted({r["name"].rsplit("_", 1)[0] for records in by_method.values() for r in records})
+    lines = [f"Protocol {protocol}; success = L_R < {SUCCESS_ROTATION_DEG:g} deg and translation < "
+             f"{100 * SUCCESS_TRANSLATION_FRACTION:g} % of the radius.", "",
+             "| class | pairs | " + " | ".join(methods) + " |", "| --- | ---: | " + " | ".join("---:" for _ in methods) + " |"]
+    for name in classes:
+        cells = []
+        count = 0
+        for method in methods:
+            records = [r for r in by_method[method] if r["name"].rsplit("_", 1)[0] == name]
+            count = len(records)
+            cells.append(f"{100 * summarize(records)['success']:.0f}" if records else "")
+        lines.append(f"| {name} | {count} | " + " | ".join(cells) + " |")
+    if "logdesc_fsr" in by_method:
+        misses = [r for r in by_method["logdesc_fsr"]
+                  if not (r["rotation_error_deg"] < SUCCESS_ROTATION_DEG
+                          and r["translation_error"] / r["scale"] < SUCCESS_TRANSLATION_FRACTION)]
+        errors = np.array([r["rotation_error_deg"] for r in misses])
+        flips = int(np.sum(errors > 150)) if len(errors) else 0
+        quarter = int(np.sum((errors > 60) & (errors < 120))) if len(errors) else 0
+        lines += ["", f"logdesc_fsr misses on {protocol}: {len(misses)} of {len(by_method['logdesc_fsr'])} pairs; "
+                  f"rotation error > 150 deg (a half-turn flip, symmetric shapes) in {flips}, 60-120 deg in "
+                  f"{quarter}, below 60 deg in {len(misses) - flips - quarter}."]
+    return lines
 
 
 def main(argv=None) -> int:
@@ -108,7 +145,9 @@ def main(argv=None) -> int:
             fpfh = PUBLISHED["fpfh_matching_partial"]
             rows[f"*{fpfh['label']}*"] = fpfh
         lines += ["", f"## {PROTOCOL_TITLES[protocol]}", "", markdown_table(rows)]
-    lines += ["", f"Error CDF: `{STEM.replace('accuracy', 'error_cdf')}.png`."]
+    lines += ["", "## Success rate by class (noisy + partial unless absent)", "",
+              *class_breakdown(cache, methods, args), ""]
+    lines += [f"Error CDF: `{STEM.replace('accuracy', 'error_cdf')}.png`."]
     markdown = "\n".join(lines)
 
     payload = {

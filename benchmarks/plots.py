@@ -30,7 +30,7 @@ def _pyplot():
     return plt
 
 
-def error_cdf(records: dict[str, dict[str, list[dict]]], path: Path, title: str, max_deg: float = 20.0) -> None:
+def error_cdf(records: dict[str, dict[str, list[dict]]], path: Path, title: str, max_deg: float = 180.0) -> None:
     """Cumulative share of pairs against rotation error, one panel per group (protocol).
 
     Args:
@@ -41,7 +41,7 @@ def error_cdf(records: dict[str, dict[str, list[dict]]], path: Path, title: str,
     """
     plt = _pyplot()
     groups = list(records)
-    figure, axes = plt.subplots(1, len(groups), figsize=(5.2 * len(groups), 4.2), squeeze=False)
+    figure, axes = plt.subplots(1, len(groups), figsize=(5.2 * len(groups), 5.0), squeeze=False)
     for axis, group in zip(axes[0], groups):
         for method, method_records in records[group].items():
             errors = np.sort([r["rotation_error_deg"] for r in method_records])
@@ -57,9 +57,10 @@ def error_cdf(records: dict[str, dict[str, list[dict]]], path: Path, title: str,
         axis.set_title(group)
         axis.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("share of pairs with error <= x")
-    axes[0][-1].legend(loc="lower right", fontsize=8)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=8)
     figure.suptitle(title)
-    figure.tight_layout()
+    figure.tight_layout(rect=(0, 0.12, 1, 1))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=110)
     plt.close(figure)
