@@ -28,6 +28,7 @@ from common import (  # noqa: E402
     DEFAULT_SEED,
     PUBLISHED,
     RESULTS,
+    ROTATED_SUFFIX,
     SUCCESS_ROTATION_DEG,
     SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
@@ -39,24 +40,51 @@ from common import (  # noqa: E402
     summarize,
     write_report,
 )
-from methods import ALL_METHODS, OPEN3D_METHODS, MethodRunner, open3d_available, parameters_dict  # noqa: E402
+from methods import (  # noqa: E402
+    ALL_METHODS,
+    OPEN3D_METHODS,
+    REFINED_FROM,
+    MethodResult,
+    MethodRunner,
+    open3d_available,
+    parameters_dict,
+    refine_pose,
+)
 from plots import error_cdf  # noqa: E402
 
 PROTOCOLS = ("clean", "noisy", "partial")
-PROTOCOL_TITLES = {"clean": "clean", "noisy": "noisy (full overlap)", "partial": "noisy + partial (768 of 1024)"}
+ROTATED = tuple(f"{protocol}{ROTATED_SUFFIX}" for protocol in PROTOCOLS)
+PROTOCOL_TITLES = {
+    "clean": "clean",
+    "noisy": "noisy (full overlap)",
+    "partial": "noisy + partial (768 of 1024)",
+    **{f"{p}{ROTATED_SUFFIX}": f"{p}, both clouds turned by a random rotation (beyond the paper)" for p in PROTOCOLS},
+}
 STEM = "modelnet10_accuracy"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=908, help="test shapes per protocol (all: 908)")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS)
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS + ROTATED,
+                        help="the paper's protocols; '<protocol>_rotated' turns both clouds by a random rotation")
     parser.add_argument("--methods", nargs="+", default=list(ALL_METHODS), choices=ALL_METHODS)
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
     return parser
+
+
+def refined_record(pair, method: str, coarse: dict) -> dict:
+    """The record of ``method`` (ICP from the coarse method's pose) on ``pair``."""
+    pose, seconds = refine_pose(pair.source, pair.target, np.array(coarse["T_pred"]), pair.scale)
+    result = MethodResult(pose, coarse["seconds"] + seconds, coarse["failed"])
+    record = pair_record(pair, method, result)
+    for key in ("precision", "accuracy", "recall", "match_count"):  # the coarse method's matches
+        if key in coarse:
+            record[key] = coarse[key]
+    return record
 
 
 def class_breakdown(cache: ResultCache, methods: list[str], args) -> list[str]:
@@ -104,15 +132,21 @@ def main(argv=None) -> int:
     if args.fresh and cache_path.exists():
         cache_path.unlink()
     cache = ResultCache(cache_path)
-    runner = MethodRunner(methods, threads=args.threads)
+    # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
+    refined = [m for m in methods if m in REFINED_FROM]
+    coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))
+    runner = MethodRunner(coarse, threads=args.threads)
 
     total = args.pairs * len(args.protocols)
     pairs = modelnet10_test_pairs(args.protocols, args.pairs, args.seed)
     with tqdm(total=total, desc="ModelNet10 pairs", unit="pair", dynamic_ncols=True) as bar:
         for pair in pairs:
-            if not cache.has(pair.protocol, pair.index, methods):
+            if not cache.has(pair.protocol, pair.index, coarse):
                 results = runner.run(pair.source, pair.target, seed=pair.index)
                 cache.add(pair_record(pair, method, result) for method, result in results.items())
+            missing = [m for m in refined if not cache.has(pair.protocol, pair.index, [m])]
+            cache.add(refined_record(pair, m, cache.records[(pair.protocol, pair.index, REFINED_FROM[m])])
+                      for m in missing)
             bar.update(1)
 
     summary = {

@@ -55,9 +55,11 @@ LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
 ICP_METHODS = ("icp_point_to_plane",)
-REFINED_METHODS = ("logdesc_fsr_icp", "fpfh_fgr_icp")
+# Refined method -> the coarse method whose pose ICP starts from.
+REFINED_FROM = {"logdesc_fsr_icp": "logdesc_fsr", "fpfh_fgr_icp": "fpfh_fgr"}
+REFINED_METHODS = tuple(REFINED_FROM)
 ALL_METHODS = LOGDESC_METHODS + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
-OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS
+OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp",)
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
 
@@ -339,10 +341,8 @@ class MethodRunner:
     @staticmethod
     def _refined(source, target, coarse: MethodResult, scale: float) -> MethodResult:
         """The package's point-to-plane ICP from a coarse pose (full clouds, user frame)."""
-        start = time.perf_counter()
-        refined = icp(source, target, coarse.transformation, DEFAULT_DISTANCE_FRACTION * scale).transformation
-        seconds = coarse.seconds + time.perf_counter() - start
-        return MethodResult(refined, seconds, coarse.failed, coarse.pred_match)
+        refined, seconds = refine_pose(source, target, coarse.transformation, scale)
+        return MethodResult(refined, coarse.seconds + seconds, coarse.failed, coarse.pred_match)
 
     def _icp(self, source, target) -> MethodResult:
         """Open3D point-to-plane ICP from the identity, in the user frame."""
@@ -360,6 +360,17 @@ class MethodRunner:
             registration.ICPConvergenceCriteria(max_iteration=50),
         )
         return MethodResult(np.asarray(result.transformation).copy(), time.perf_counter() - start)
+
+
+def refine_pose(source: np.ndarray, target: np.ndarray, coarse: np.ndarray, scale: float) -> tuple[np.ndarray, float]:
+    """(refined (4, 4) pose, seconds): the package's point-to-plane ICP from ``coarse``.
+
+    Correspondences within 5 % of ``scale`` (the pair's radius, user units): the default of
+    ``logdesc_rt.register(..., refine="point_to_plane")``.
+    """
+    start = time.perf_counter()
+    refined = icp(source, target, coarse, DEFAULT_DISTANCE_FRACTION * scale).transformation
+    return refined, time.perf_counter() - start
 
 
 def parameters_dict(parameters: FpfhParameters) -> dict:
