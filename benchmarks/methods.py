@@ -196,9 +196,15 @@ def feature_ransac(source, target, source_features, target_features, parameters:
     return np.asarray(result.transformation)
 
 
-def feature_fgr(source, target, source_features, target_features, parameters: FpfhParameters):
-    """Open3D Fast Global Registration on feature matches, network units -> (4, 4)."""
-    registration = _open3d().pipelines.registration
+def feature_fgr(source, target, source_features, target_features, parameters: FpfhParameters, seed: int):
+    """Open3D Fast Global Registration on feature matches, network units -> (4, 4).
+
+    FGR samples tuples at random from Open3D's global generator: without a seed the same
+    pair gives different poses from run to run (seen: 171, 114, 56 and 166 degrees).
+    """
+    o3d = _open3d()
+    registration = o3d.pipelines.registration
+    o3d.utility.random.seed(int(seed))
     option = registration.FastGlobalRegistrationOption(maximum_correspondence_distance=parameters.fgr_distance)
     result = registration.registration_fgr_based_on_feature_matching(
         source, target, _feature(source_features), _feature(target_features), option
@@ -329,7 +335,7 @@ class MethodRunner:
         wanted = set(self.methods) | ({f"{prefix}_fgr"} if f"{prefix}_fgr_icp" in self.methods else set())
         for name, estimate in (
             (f"{prefix}_ransac", lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
-            (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters)),
+            (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters, seed)),
         ):
             if name not in wanted:
                 continue

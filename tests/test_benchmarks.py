@@ -103,6 +103,16 @@ def test_open3d_baselines_run_and_return_rigid_poses(shared_data):
         assert np.linalg.det(rotation) == pytest.approx(1.0, abs=1e-6), name
 
 
+def test_open3d_baselines_are_seeded(shared_data):
+    """Open3D's RANSAC and FGR draw from its global generator: the runner seeds it."""
+    pytest.importorskip("open3d")
+    pair = next(common.modelnet10_test_pairs(["partial"], count=1))
+    runner = methods.MethodRunner(methods.FPFH_METHODS)
+    first, second = runner.run(pair.source, pair.target, seed=5), runner.run(pair.source, pair.target, seed=5)
+    for name in methods.FPFH_METHODS:
+        assert np.array_equal(first[name].transformation, second[name].transformation), name
+
+
 def test_accuracy_script_end_to_end_on_one_pair(shared_data, tmp_path):
     import accuracy_modelnet
 
