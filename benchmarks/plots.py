@@ -42,7 +42,7 @@ def error_cdf(records: dict[str, dict[str, list[dict]]], path: Path, title: str,
     plt = _pyplot()
     groups = list(records)
     figure, axes = plt.subplots(1, len(groups), figsize=(5.2 * len(groups), 5.0), squeeze=False)
-    for axis, group in zip(axes[0], groups):
+    for axis, group in zip(axes[0], groups, strict=True):
         for method, method_records in records[group].items():
             errors = np.sort([r["rotation_error_deg"] for r in method_records])
             if len(errors) == 0:
