@@ -97,40 +97,24 @@ def _read_h5(folder: Path, split: str) -> tuple[np.ndarray, list[str]]:
 ROTATED_SUFFIX = "_rotated"
 
 
-def rotate_whole_pair(pair: BenchmarkPair, rotation: np.ndarray, protocol: str) -> BenchmarkPair:
-    """The same pair seen from another frame: both clouds turned by ``rotation`` (3, 3).
-
-    The relative motion is unchanged in size; its matrix becomes G T G^T. The paper's
-    protocol always leaves the source in the dataset's canonical (upright) pose; users' scans
-    arrive in any frame, which this variant measures.
-    """
-    turn = np.eye(4)
-    turn[:3, :3] = rotation
-    return BenchmarkPair(protocol, pair.index, pair.name, pair.source @ rotation.T, pair.target @ rotation.T,
-                         turn @ pair.T_gt @ turn.T, pair.gt_match, pair.scale)
-
-
 def modelnet10_test_pairs(
     protocols: Iterable[str], count: int | None = None, seed: int = DEFAULT_SEED, data_root: Path = DATA_ROOT
 ) -> Iterator[BenchmarkPair]:
     """The evaluation pairs of ``training/evaluate.py``: test shape i, ``default_rng([seed, 0, i])``.
 
     A protocol with the suffix ``"_rotated"`` (e.g. ``"partial_rotated"``) is the same pair
-    with both clouds turned by a uniformly random rotation (``default_rng([seed, 1, i])``).
+    with both clouds turned by one uniformly random rotation (``make_pair(...,
+    any_orientation=True)``): the paper's protocol keeps the source in the dataset's canonical
+    pose, users' scans come in any frame.
     """
-    from scipy.spatial.transform import Rotation
-
     shapes, names = _read_h5(Path(data_root) / "modelnet10_hdf5_1024", "test")
     count = len(shapes) if count is None else min(count, len(shapes))
     for protocol in protocols:
         base = protocol.removesuffix(ROTATED_SUFFIX)
+        turned = protocol.endswith(ROTATED_SUFFIX)
         for index in range(count):
-            pair = make_pair(shapes[index], base, np.random.default_rng([seed, 0, index]))
-            benchmark_pair = _from_synthetic(pair, protocol, index, names[index])
-            if protocol.endswith(ROTATED_SUFFIX):
-                turn = Rotation.random(random_state=np.random.default_rng([seed, 1, index])).as_matrix()
-                benchmark_pair = rotate_whole_pair(benchmark_pair, turn, protocol)
-            yield benchmark_pair
+            pair = make_pair(shapes[index], base, np.random.default_rng([seed, 0, index]), any_orientation=turned)
+            yield _from_synthetic(pair, protocol, index, names[index])
 
 
 def validation_pairs(protocol: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT) -> list[BenchmarkPair]:

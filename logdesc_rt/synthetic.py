@@ -90,12 +90,14 @@ def make_pair(
     points_per_cloud: int | None = None,
     partial_points: int | None = None,
     normalization_config: NormalizationConfig = NormalizationConfig(),
+    any_orientation: bool = False,
 ) -> Pair:
     """Build one registration pair from a shape (PRNet / LoGDesc protocol).
 
     Draw order (fixed, so that one seed gives the same motion under every protocol): the three
     angles, the translation, the optional point subset, the two permutations, the noise of the
-    source, the noise of the target, the source crop, the target crop.
+    source, the noise of the target, the source crop, the target crop, and last the optional
+    whole-pair rotation (so a seed gives the same pair with or without it, only turned).
 
     Args:
         shape_points: (P, 3) points of one shape, P >= 1024 (or >= ``points_per_cloud``).
@@ -109,6 +111,10 @@ def make_pair(
         partial_points: points kept by the partial crop; default ``round(0.75 * n)`` (768 of
             1024, PRNet).
         normalization_config: the network frame (the runtime's default unless overridden).
+        any_orientation: turn both clouds by one uniformly random rotation G at the end. The
+            paper's protocol leaves the source in the dataset's canonical pose, which a
+            network can learn to rely on; users' scans arrive in any frame. The relative
+            motion keeps its size; its matrix becomes G T G^T.
 
     Returns:
         :class:`Pair`. Clean and noisy pairs have N = M = n points, partial ones
@@ -164,6 +170,11 @@ def make_pair(
     pose = np.eye(4)
     pose[:3, :3] = rotation
     pose[:3, 3] = translation
+    if any_orientation:
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        source, target = source @ turn[:3, :3].T, target @ turn[:3, :3].T
+        pose = turn @ pose @ turn.T
     normalization = PairNormalization.fit(source, target, normalization_config)
     return Pair(
         protocol=protocol,

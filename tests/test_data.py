@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logdesc_rt.synthetic import NOISE_BOUND
+from logdesc_rt.synthetic import NOISE_BOUND, SOURCE_POINTS
 from training.data import (
     MODELNET10_FOLDER,
     MODELNET40_SUBSET_FOLDER,
@@ -120,6 +120,37 @@ def test_same_seed_same_pair_and_same_motion_across_protocols():
     assert not np.allclose(first.T_gt, other.T_gt)
     partial = make_pair(shape, "partial", np.random.default_rng([3, 0, 7]))
     np.testing.assert_array_equal(first.T_gt, partial.T_gt)  # motion drawn first
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_any_orientation_turns_the_same_pair(protocol):
+    """The whole-pair rotation is drawn last: the same pair, both clouds turned by one G."""
+    shape = _shape()
+    plain = make_pair(shape, protocol, np.random.default_rng([4, 0, 2]))
+    turned = make_pair(shape, protocol, np.random.default_rng([4, 0, 2]), any_orientation=True)
+    # Recover G from the sources (same points, same order) and check everything follows it.
+    turn = np.linalg.lstsq(plain.source, turned.source, rcond=None)[0].T
+    np.testing.assert_allclose(turn @ turn.T, np.eye(3), atol=1e-9)
+    assert not np.allclose(turn, np.eye(3))
+    np.testing.assert_allclose(turned.target, plain.target @ turn.T, atol=1e-12)
+    np.testing.assert_array_equal(turned.gt_match_src, plain.gt_match_src)
+    residuals = _residuals(turned.source, turned.target, turned.T_gt, turned.gt_match_src)
+    np.testing.assert_allclose(residuals, _residuals(plain.source, plain.target, plain.T_gt, plain.gt_match_src),
+                               atol=1e-9)
+    # The size of the relative motion does not change, only its axis.
+    angle = [np.trace(pair.T_gt[:3, :3]) for pair in (plain, turned)]
+    assert angle[0] == pytest.approx(angle[1], abs=1e-9)
+
+
+def test_pair_dataset_any_orientation_turns_its_pairs():
+    shapes = np.stack([_shape(), _shape()[::-1].copy()])
+    key = PairKey(0, 1, "noisy", SOURCE_POINTS)
+    plain = PairDataset(shapes, seed=3)[key]
+    turned = PairDataset(shapes, seed=3, any_orientation=True)[key]
+    assert not np.allclose(plain["T_gt_user"], turned["T_gt_user"])
+    np.testing.assert_array_equal(plain["gt_match_src"], turned["gt_match_src"])
+    # Same pair seen from another frame: the rotation angle of the motion is unchanged.
+    assert np.trace(plain["T_gt_user"][:3, :3]) == pytest.approx(np.trace(turned["T_gt_user"][:3, :3]), abs=1e-6)
 
 
 def test_protocol_mix_and_schedule():

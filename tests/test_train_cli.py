@@ -128,8 +128,9 @@ def test_evaluate_and_plot_cli(trained, tmp_path):
     report = tmp_path / "eval.md"
     result = _run([sys.executable, "-m", "training.evaluate", str(trained / "last.pt"), "--protocols",
                    "clean", "partial", "--pairs", "2", "--workers", "0", "--no-progress",
-                   "--data-root", str(DATA_ROOT), "--out", str(report)])
+                   "--data-root", str(DATA_ROOT), "--out", str(report), "--any-orientation"])
     assert "| clean |" in result.stdout and "| partial |" in result.stdout
+    assert json.loads((tmp_path / "eval.json").read_text())["meta"]["any_orientation"] is True
     metrics = json.loads((tmp_path / "eval.json").read_text())["metrics"]
     assert set(metrics) == {"clean", "partial"} and metrics["partial"]["pairs"] == 2
     for key in ("rmse_r", "mae_r", "rmse_t", "mae_t", "l_r", "l_t", "l_rmse", "precision", "accuracy", "recall"):

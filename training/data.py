@@ -374,7 +374,8 @@ class PairDataset(_TorchDataset):
     - ``protocol`` str, ``epoch`` int, ``index`` int.
 
     Geometry that fails on a degenerate draw (very rare) is retried with
-    ``default_rng([seed, e, i, attempt])``.
+    ``default_rng([seed, e, i, attempt])``. With ``any_orientation`` every pair has both
+    clouds turned by a random rotation (see :func:`logdesc_rt.synthetic.make_pair`).
     """
 
     def __init__(
@@ -384,6 +385,7 @@ class PairDataset(_TorchDataset):
         geometry_config: GeometryConfig = GeometryConfig(),
         normalization_config: NormalizationConfig = NormalizationConfig(),
         name: str = "train",
+        any_orientation: bool = False,
     ) -> None:
         shapes = np.asarray(shapes, dtype=np.float32)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < SOURCE_POINTS:
@@ -393,6 +395,7 @@ class PairDataset(_TorchDataset):
         self.geometry_config = geometry_config
         self.normalization_config = normalization_config
         self.name = name
+        self.any_orientation = bool(any_orientation)
 
     def __len__(self) -> int:
         return len(self.shapes)
@@ -406,6 +409,7 @@ class PairDataset(_TorchDataset):
             np.random.default_rng(words),
             points_per_cloud=key.points_per_cloud,
             normalization_config=self.normalization_config,
+            any_orientation=self.any_orientation,
         )
 
     def __getitem__(self, key) -> dict:

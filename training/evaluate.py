@@ -153,11 +153,17 @@ def modelnet10_test_dataset(
     seed: int = DEFAULT_EVAL_SEED,
     geometry_config: GeometryConfig = GeometryConfig(),
     normalization_config: NormalizationConfig = NormalizationConfig(),
+    any_orientation: bool = False,
 ) -> PairDataset:
-    """ModelNet10's test shapes as a :class:`PairDataset` (the only reader of the test split)."""
+    """ModelNet10's test shapes as a :class:`PairDataset` (the only reader of the test split).
+
+    ``any_orientation`` turns both clouds of every pair by a random rotation (the same pairs
+    otherwise; ``benchmarks/`` calls these protocols ``<protocol>_rotated``).
+    """
     split = load_modelnet(Path(data_root) / MODELNET10_FOLDER, "test")
     return PairDataset(
-        split.points[:, :SOURCE_POINTS], seed, geometry_config, normalization_config, name="test"
+        split.points[:, :SOURCE_POINTS], seed, geometry_config, normalization_config, name="test",
+        any_orientation=any_orientation,
     )
 
 
@@ -340,12 +346,13 @@ def evaluate_checkpoint(
     match_threshold: float = MatchingConfig().match_threshold,
     fsr_config: FsrConfig = FsrConfig(),
     progress: bool = True,
+    any_orientation: bool = False,
 ) -> tuple[dict, list[PairResult], dict]:
     """Load a checkpoint, evaluate it on ModelNet10 test pairs; returns (summary, results, meta)."""
     checkpoint = load_checkpoint(checkpoint_path)
     model = model_from_checkpoint(checkpoint, device)
     geometry_config, normalization_config = configs_from_checkpoint(checkpoint)
-    dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config)
+    dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation)
     keys = evaluation_keys(len(dataset), protocols, pairs)
     start = time.perf_counter()
     results = evaluate_model(
@@ -358,6 +365,7 @@ def evaluate_checkpoint(
         "step": checkpoint.get("step"),
         "git_commit": checkpoint.get("git_commit", "unknown"),
         "seed": seed,
+        "any_orientation": any_orientation,
         "pairs_per_protocol": len(keys) // max(1, len(protocols)),
         "sinkhorn_iterations": int(sinkhorn_iterations or model.config.sinkhorn_iterations),
         "match_threshold": match_threshold,
@@ -389,6 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="default: the model config's value")
     parser.add_argument("--match-threshold", type=float, default=MatchingConfig().match_threshold)
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--any-orientation", action="store_true",
+                        help="turn both clouds of every pair by a random rotation (same pairs otherwise)")
     return parser
 
 
@@ -409,7 +419,7 @@ def main(argv=None) -> int:
         args.checkpoint, data_root=args.data_root, protocols=args.protocols, pairs=args.pairs,
         seed=args.seed, device=device, batch_size=args.batch_size, workers=workers, amp=args.amp,
         sinkhorn_iterations=args.sinkhorn_iterations, match_threshold=args.match_threshold,
-        progress=not args.no_progress,
+        progress=not args.no_progress, any_orientation=args.any_orientation,
     )
     markdown = format_markdown(summary, meta)
     print(markdown)

@@ -152,6 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--early-points-per-cloud", type=int, default=None,
                       help="fewer points for the first --early-points-steps steps (speed)")
     data.add_argument("--early-points-steps", type=int, default=0)
+    data.add_argument("--any-orientation", action="store_true",
+                      help="turn both clouds of every training and validation pair by a random rotation "
+                           "(the paper's pairs keep the source upright; users' scans are not)")
     data.add_argument("--val-fraction", type=float, default=0.05, help="of each training source")
     data.add_argument("--val-every", type=int, default=500, help="validate every N steps (0 = never)")
     data.add_argument("--val-pairs", type=int, default=128)
@@ -531,8 +534,8 @@ def train(args) -> int:
         early_points_per_cloud=args.early_points_per_cloud,
         early_steps=args.early_points_steps,
     )
-    train_set = PairDataset(shapes.train, args.seed, name="train")
-    val_set = PairDataset(shapes.val, args.seed, name="val")
+    train_set = PairDataset(shapes.train, args.seed, name="train", any_orientation=args.any_orientation)
+    val_set = PairDataset(shapes.val, args.seed, name="val", any_orientation=args.any_orientation)
     sampler = TrainBatchSampler(len(train_set), args.batch_size, schedule, args.seed, start_step=progress.step)
     loader_options = dict(
         num_workers=workers,
