@@ -162,7 +162,9 @@ def main(argv=None) -> int:
         "dataset units (unit sphere). Success: L_R < 5 deg and translation error < 5 % of the object's "
         "radius. P/A/R: matching precision / accuracy / recall against the true correspondences, for "
         "logdesc's Sinkhorn matches and, for descriptor-only and FPFH rows, the mutual nearest neighbours "
-        "in descriptor space (the paper does not say how it matched FPFH for its Table 1, probably through its learned matcher, so its FPFH row and ours measure different things). ms / pair: median wall time of the method on a pair (network included), "
+        "in descriptor space (the paper does not say how it matched FPFH for its Table 1, probably "
+        "through its learned matcher, so its FPFH row and ours measure different things). ms / pair: "
+        "median wall time of the method on a pair (network included), "
         "measured during this run on a shared 2-core machine; `latency.md` has the controlled timings.",
         "",
         f"Command: `{command_line()}`",
