@@ -9,7 +9,8 @@ the identity. The paper's published ModelNet40 figures are shown beside ours, la
     python benchmarks/accuracy_modelnet.py [--pairs 908] [--methods ...] [--threads 2]
 
 Per-pair results go to ``benchmarks/results/modelnet10_accuracy_pairs.jsonl`` as they come,
-so an interrupted run resumes; ``--fresh`` starts over. Writes
+so an interrupted run resumes; ``--fresh`` starts over. The repository keeps them gzipped
+(``.jsonl.gz``, unpacked on the next run), so the report can be rebuilt without recomputing. Writes
 ``benchmarks/results/modelnet10_accuracy.{md,json}`` and ``modelnet10_error_cdf.png``.
 """
 
@@ -129,9 +130,7 @@ def main(argv=None) -> int:
         methods = [m for m in methods if m not in OPEN3D_METHODS]
         print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    if args.fresh and cache_path.exists():
-        cache_path.unlink()
-    cache = ResultCache(cache_path)
+    cache = ResultCache(cache_path, fresh=args.fresh)
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]
     coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))
@@ -194,9 +193,10 @@ def main(argv=None) -> int:
         "open3d_parameters": parameters_dict(runner.parameters),
         "summary": summary,
         "published": PUBLISHED,
-        "per_pair_file": cache_path.name,
+        "per_pair_file": cache_path.name + ".gz",
     }
     write_report(STEM, markdown, payload, args.out)
+    cache.pack()  # the gzipped per-pair records kept in the repository
     error_cdf(
         {protocol: {method: cache.select(protocol, method, range(args.pairs)) for method in methods}
          for protocol in args.protocols},

@@ -35,7 +35,8 @@ only); ms / pair, the median wall time of a method on a pair on this shared mach
 failed, pairs for which a method returned no pose; overlap, GT angle: see (b).
 
 Per-pair results go to ``<out>/bunny_pairs.jsonl`` as they come (an interrupted run
-resumes; ``--fresh`` starts over). Writes ``<out>/bunny.{md,json}`` and
+resumes; ``--fresh`` starts over); the repository keeps them gzipped
+(``bunny_pairs.jsonl.gz``, unpacked on the next run). Writes ``<out>/bunny.{md,json}`` and
 ``<out>/bunny_error_cdf.png``.
 """
 
@@ -538,9 +539,7 @@ def main(argv=None) -> int:
         print(f"open3d is not installed (pip install open3d): skipping {skipped}",
               file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    if args.fresh and cache_path.exists():
-        cache_path.unlink()
-    cache = ResultCache(cache_path)
+    cache = ResultCache(cache_path, fresh=args.fresh)
     runner = MethodRunner(methods, threads=args.threads)
 
     scans = load_scans()
@@ -571,8 +570,9 @@ def main(argv=None) -> int:
     }
     wall_seconds = time.perf_counter() - started
     markdown, payload = report(args, scans, overlaps, selection, real_pairs, records,
-                               summary, runner, cache_path.name, wall_seconds)
+                               summary, runner, cache_path.name + ".gz", wall_seconds)
     write_report(STEM, markdown, payload, args.out)
+    cache.pack()  # the gzipped per-pair records kept in the repository
     error_cdf(
         {
             f"{CDF_TITLES[part]} ({len(indices[part])} pairs)": records[part]

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -154,11 +155,21 @@ def pair_record(pair: BenchmarkPair, method: str, result) -> dict:
 
 
 class ResultCache:
-    """Append-only JSON-lines file of pair records; resumes an interrupted run."""
+    """Append-only JSON-lines file of pair records; resumes an interrupted run.
 
-    def __init__(self, path: Path) -> None:
+    The repository keeps a gzipped copy (``<name>.jsonl.gz``, a fifth of the size); when only
+    that exists it is unpacked next to it first, so the reports can be rebuilt without
+    recomputing and new records append to the plain file.
+    """
+
+    def __init__(self, path: Path, fresh: bool = False) -> None:
         self.path = Path(path)
         self.records: dict[tuple[str, int, str], dict] = {}
+        packed = self.path.with_name(self.path.name + ".gz")
+        if fresh:  # start over: forget the plain file and do not unpack the kept copy
+            self.path.unlink(missing_ok=True)
+        elif not self.path.exists() and packed.exists():
+            self.path.write_bytes(gzip.decompress(packed.read_bytes()))
         if self.path.exists():
             for line in self.path.read_text().splitlines():
                 if line.strip():
@@ -177,6 +188,12 @@ class ResultCache:
 
     def select(self, protocol: str, method: str, indices: Iterable[int]) -> list[dict]:
         return [self.records[(protocol, i, method)] for i in indices if (protocol, i, method) in self.records]
+
+    def pack(self) -> Path:
+        """Write the gzipped copy kept in the repository (deterministic: no time stamp)."""
+        packed = self.path.with_name(self.path.name + ".gz")
+        packed.write_bytes(gzip.compress(self.path.read_bytes(), mtime=0))
+        return packed
 
 
 # ----------------------------------------------------------------------------- summaries

@@ -60,6 +60,12 @@ def test_result_cache_resumes(tmp_path):
     assert reloaded.has("p", 3, ["m"])
     assert not reloaded.has("p", 4, ["m"])
     assert reloaded.select("p", "m", [3, 4])[0]["rotation_error_deg"] == 1.0
+    # The gzipped copy kept in the repository stands in for a missing plain file.
+    packed = reloaded.pack()
+    path.unlink()
+    assert common.ResultCache(path).has("p", 3, ["m"])
+    assert path.exists() and packed.exists()
+    assert not common.ResultCache(path, fresh=True).has("p", 3, ["m"])
 
 
 def test_runner_rejects_unknown_methods():
