@@ -34,6 +34,7 @@ from common import (  # noqa: E402
     SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
     command_line,
+    is_success,
     machine_info,
     markdown_table,
     modelnet10_test_pairs,
@@ -110,9 +111,7 @@ def class_breakdown(cache: ResultCache, methods: list[str], args) -> list[str]:
             cells.append(f"{100 * summarize(records)['success']:.0f}" if records else "")
         lines.append(f"| {name} | {count} | " + " | ".join(cells) + " |")
     if "logdesc_fsr" in by_method:
-        misses = [r for r in by_method["logdesc_fsr"]
-                  if not (r["rotation_error_deg"] < SUCCESS_ROTATION_DEG
-                          and r["translation_error"] / r["scale"] < SUCCESS_TRANSLATION_FRACTION)]
+        misses = [r for r in by_method["logdesc_fsr"] if not is_success(r)]
         errors = np.array([r["rotation_error_deg"] for r in misses])
         flips = int(np.sum(errors > 150)) if len(errors) else 0
         quarter = int(np.sum((errors > 60) & (errors < 120))) if len(errors) else 0

@@ -197,6 +197,12 @@ class ResultCache:
 
 
 # ----------------------------------------------------------------------------- summaries
+def is_success(record: dict) -> bool:
+    """L_R < 5 deg and translation error < 5 % of the object's radius (a pair record)."""
+    return bool(record["rotation_error_deg"] < SUCCESS_ROTATION_DEG
+                and record["translation_error"] / record["scale"] < SUCCESS_TRANSLATION_FRACTION)
+
+
 def summarize(records: list[dict]) -> dict[str, float]:
     """The paper's metrics over one method's records on one protocol.
 
@@ -211,9 +217,8 @@ def summarize(records: list[dict]) -> dict[str, float]:
     metrics = registration_metrics(predicted, truth)
     metrics.pop("l_rmse")
     rotation = np.array([r["rotation_error_deg"] for r in records])
-    translation = np.array([r["translation_error"] / r["scale"] for r in records])
     metrics["l_r_median"] = float(np.median(rotation))
-    metrics["success"] = float(np.mean((rotation < SUCCESS_ROTATION_DEG) & (translation < SUCCESS_TRANSLATION_FRACTION)))
+    metrics["success"] = float(np.mean([is_success(r) for r in records]))
     metrics["failed"] = int(sum(r["failed"] for r in records))
     for name in ("precision", "accuracy", "recall"):
         values = np.array([r.get(name) for r in records if r.get(name) is not None], dtype=np.float64)

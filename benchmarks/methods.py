@@ -257,13 +257,15 @@ class MethodRunner:
         results: dict[str, MethodResult] = {}
         if any(m.startswith("logdesc") for m in self.methods):
             results.update(self._logdesc(source, target, seed))
-        if any(m.startswith("fpfh") for m in self.methods):
-            results.update(self._fpfh(source, target, seed))
+        classical = [m for m in self.methods if m.startswith("fpfh") or m == "icp_point_to_plane"]
+        # The runtime's pair normalisation, fitted once: FPFH's frame, and the scale ICP's radii use.
+        normalization = PairNormalization.fit(source, target) if classical else None
+        if any(m.startswith("fpfh") for m in classical):
+            results.update(self._fpfh(source, target, normalization, seed))
             if "fpfh_fgr_icp" in self.methods:
-                scale = PairNormalization.fit(source, target).scale
-                results["fpfh_fgr_icp"] = self._refined(source, target, results["fpfh_fgr"], scale)
-        if "icp_point_to_plane" in self.methods:
-            results["icp_point_to_plane"] = self._icp(source, target)
+                results["fpfh_fgr_icp"] = self._refined(source, target, results["fpfh_fgr"], normalization.scale)
+        if "icp_point_to_plane" in classical:
+            results["icp_point_to_plane"] = self._icp(source, target, normalization.scale)
         return {name: results[name] for name in self.methods}
 
     def _logdesc(self, source, target, seed) -> dict[str, MethodResult]:
@@ -305,9 +307,8 @@ class MethodRunner:
             )
         return results
 
-    def _fpfh(self, source, target, seed) -> dict[str, MethodResult]:
+    def _fpfh(self, source, target, normalization: PairNormalization, seed) -> dict[str, MethodResult]:
         start = time.perf_counter()
-        normalization = PairNormalization.fit(source, target)
         source_cloud = _cloud(normalization.source_to_network(source), self.parameters.normal_radius)
         target_cloud = _cloud(normalization.target_to_network(target), self.parameters.normal_radius)
         source_features = fpfh_descriptors(source_cloud, self.parameters)
@@ -350,11 +351,10 @@ class MethodRunner:
         refined, seconds = refine_pose(source, target, coarse.transformation, scale)
         return MethodResult(refined, coarse.seconds + seconds, coarse.failed, coarse.pred_match)
 
-    def _icp(self, source, target) -> MethodResult:
-        """Open3D point-to-plane ICP from the identity, in the user frame."""
+    def _icp(self, source, target, scale: float) -> MethodResult:
+        """Open3D point-to-plane ICP from the identity, in the user frame (``scale``: the pair's radius)."""
         registration = _open3d().pipelines.registration
         start = time.perf_counter()
-        scale = PairNormalization.fit(source, target).scale
         source_cloud = _cloud(source)
         target_cloud = _cloud(target, self.parameters.normal_radius * scale)
         result = registration.registration_icp(
