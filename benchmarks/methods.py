@@ -173,7 +173,13 @@ def fpfh_descriptors(cloud, parameters: FpfhParameters) -> np.ndarray:
 
 
 def feature_ransac(source, target, source_features, target_features, parameters: FpfhParameters, seed: int):
-    """Open3D RANSAC on feature matches (its tutorial's checkers), network units -> (4, 4)."""
+    """Open3D RANSAC on feature matches (its tutorial's checkers), network units -> (4, 4).
+
+    Seeded, but repeatable only on one Open3D thread (``open3d.utility.set_max_threads(1)``):
+    with several, the threads race to the early stop (3 of 20 repeats of one pair differed on
+    2 threads). The recorded runs used all cores, so their ``fpfh_ransac`` rows reproduce
+    statistically, not bit for bit.
+    """
     o3d = _open3d()
     registration = o3d.pipelines.registration
     o3d.utility.random.seed(int(seed))

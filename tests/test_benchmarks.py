@@ -110,11 +110,21 @@ def test_open3d_baselines_run_and_return_rigid_poses(shared_data):
 
 
 def test_open3d_baselines_are_seeded(shared_data):
-    """Open3D's RANSAC and FGR draw from its global generator: the runner seeds it."""
-    pytest.importorskip("open3d")
+    """Open3D's RANSAC and FGR draw from its global generator: the runner seeds it.
+
+    On one thread. With several, RANSAC's threads race to its early stop and the seed no
+    longer fixes the result (3 of 20 repeats differed on this pair on 2 threads); FGR is
+    repeatable either way.
+    """
+    open3d = pytest.importorskip("open3d")
     pair = next(common.modelnet10_test_pairs(["partial"], count=1))
     runner = methods.MethodRunner(methods.FPFH_METHODS)
-    first, second = runner.run(pair.source, pair.target, seed=5), runner.run(pair.source, pair.target, seed=5)
+    threads = open3d.utility.get_max_threads()
+    open3d.utility.set_max_threads(1)
+    try:
+        first, second = runner.run(pair.source, pair.target, seed=5), runner.run(pair.source, pair.target, seed=5)
+    finally:
+        open3d.utility.set_max_threads(threads)
     for name in methods.FPFH_METHODS:
         assert np.array_equal(first[name].transformation, second[name].transformation), name
 
