@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -139,3 +140,24 @@ def test_evaluate_and_plot_cli(trained, tmp_path):
     image = tmp_path / "curves.png"
     _run([sys.executable, "training/plot_curves.py", str(trained / "log.jsonl"), str(image)])
     assert image.stat().st_size > 10_000
+
+
+def test_evaluate_on_the_checkpoints_validation_split(trained, tmp_path):
+    from training.data import load_training_sources, split_training_shapes
+    from training.evaluate import validation_dataset
+
+    checkpoint = _checkpoint(trained / "last.pt")
+    dataset = validation_dataset(checkpoint, DATA_ROOT)
+    expected = split_training_shapes(load_training_sources(DATA_ROOT), 0.05, 0).val
+    assert dataset.name == "val" and np.array_equal(dataset.shapes, expected)
+    # another training seed carves another validation set: the split follows the checkpoint
+    other = validation_dataset({**checkpoint, "train_args": {**checkpoint["train_args"], "seed": 7}}, DATA_ROOT)
+    assert not np.array_equal(other.shapes, expected)
+
+    report = tmp_path / "val.md"
+    result = _run([sys.executable, "-m", "training.evaluate", str(trained / "last.pt"), "--split", "val",
+                   "--protocols", "noisy", "--pairs", "2", "--workers", "0", "--no-progress",
+                   "--data-root", str(DATA_ROOT), "--out", str(report)])
+    assert "| noisy |" in result.stdout
+    saved = json.loads((tmp_path / "val.json").read_text())
+    assert saved["meta"]["split"] == "val" and saved["metrics"]["noisy"]["pairs"] == 2

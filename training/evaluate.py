@@ -1,5 +1,9 @@
 """Evaluate a training checkpoint on ModelNet10's test split with the paper's protocol.
 
+``--split val`` evaluates on the checkpoint's own held-out validation shapes instead (the
+split ``training.train`` carved with its ``--val-fraction`` and ``--seed``): that is the set
+to choose between checkpoints on; the test split only reports the chosen one.
+
 Usage (from the repository root)::
 
     python -m training.evaluate runs/small/best.pt --protocols clean noisy partial \
@@ -57,6 +61,8 @@ from training.data import (
     PairKey,
     fixed_pair_batches,
     load_modelnet,
+    load_training_sources,
+    split_training_shapes,
 )
 
 __all__ = [
@@ -64,16 +70,18 @@ __all__ = [
     "PairResult",
     "evaluate_checkpoint",
     "evaluate_model",
+    "evaluation_keys",
     "format_markdown",
     "load_checkpoint",
     "model_from_checkpoint",
+    "modelnet10_test_dataset",
     "register_from_log_assignment",
     "summarize",
-    "modelnet10_test_dataset",
-    "evaluation_keys",
+    "validation_dataset",
 ]
 
 DEFAULT_EVAL_SEED = 1234
+SPLITS = ("test", "val")
 TEST_SHAPES = 908
 
 
@@ -164,6 +172,29 @@ def modelnet10_test_dataset(
     return PairDataset(
         split.points[:, :SOURCE_POINTS], seed, geometry_config, normalization_config, name="test",
         any_orientation=any_orientation,
+    )
+
+
+def validation_dataset(
+    checkpoint: dict,
+    data_root=DEFAULT_DATA_ROOT,
+    seed: int = DEFAULT_EVAL_SEED,
+    geometry_config: GeometryConfig = GeometryConfig(),
+    normalization_config: NormalizationConfig = NormalizationConfig(),
+    any_orientation: bool = False,
+) -> PairDataset:
+    """The checkpoint's held-out validation shapes as a :class:`PairDataset`.
+
+    The split is re-carved from the training sources with the checkpoint's own
+    ``--val-fraction`` and ``--seed`` (:func:`training.data.split_training_shapes`), so it is the
+    set the run validated on; the pairs are drawn with ``seed`` like the test pairs.
+    """
+    train_args = checkpoint.get("train_args") or {}
+    shapes = split_training_shapes(
+        load_training_sources(data_root), float(train_args.get("val_fraction", 0.05)), int(train_args.get("seed", 0))
+    )
+    return PairDataset(
+        shapes.val, seed, geometry_config, normalization_config, name="val", any_orientation=any_orientation
     )
 
 
@@ -347,12 +378,21 @@ def evaluate_checkpoint(
     fsr_config: FsrConfig = FsrConfig(),
     progress: bool = True,
     any_orientation: bool = False,
+    split: str = "test",
 ) -> tuple[dict, list[PairResult], dict]:
-    """Load a checkpoint, evaluate it on ModelNet10 test pairs; returns (summary, results, meta)."""
+    """Load a checkpoint, evaluate it on ModelNet10 test pairs (or, with ``split="val"``, on its
+    validation shapes); returns (summary, results, meta)."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
     checkpoint = load_checkpoint(checkpoint_path)
     model = model_from_checkpoint(checkpoint, device)
     geometry_config, normalization_config = configs_from_checkpoint(checkpoint)
-    dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation)
+    if split == "val":
+        dataset = validation_dataset(
+            checkpoint, data_root, seed, geometry_config, normalization_config, any_orientation
+        )
+    else:
+        dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation)
     keys = evaluation_keys(len(dataset), protocols, pairs)
     start = time.perf_counter()
     results = evaluate_model(
@@ -362,6 +402,7 @@ def evaluate_checkpoint(
     )
     meta = {
         "checkpoint": str(checkpoint_path),
+        "split": split,
         "step": checkpoint.get("step"),
         "git_commit": checkpoint.get("git_commit", "unknown"),
         "seed": seed,
@@ -381,9 +422,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate a LoGDesc checkpoint on ModelNet10 test pairs (paper protocol and metrics).",
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint .pt written by training.train")
+    parser.add_argument("--split", default="test", choices=SPLITS,
+                        help="test: ModelNet10 test shapes; val: the checkpoint's held-out validation "
+                             "shapes (choose checkpoints on this)")
     parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS)
     parser.add_argument("--pairs", type=int, default=None,
-                        help=f"pairs per protocol: the first N test shapes (default all {TEST_SHAPES})")
+                        help=f"pairs per protocol: the first N shapes (default all; {TEST_SHAPES} test shapes)")
     parser.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED, help="pair seed (default 1234)")
     parser.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     parser.add_argument("--out", type=Path, default=None,
@@ -419,7 +463,7 @@ def main(argv=None) -> int:
         args.checkpoint, data_root=args.data_root, protocols=args.protocols, pairs=args.pairs,
         seed=args.seed, device=device, batch_size=args.batch_size, workers=workers, amp=args.amp,
         sinkhorn_iterations=args.sinkhorn_iterations, match_threshold=args.match_threshold,
-        progress=not args.no_progress, any_orientation=args.any_orientation,
+        progress=not args.no_progress, any_orientation=args.any_orientation, split=args.split,
     )
     markdown = format_markdown(summary, meta)
     print(markdown)
