@@ -161,3 +161,22 @@ def test_evaluate_on_the_checkpoints_validation_split(trained, tmp_path):
     assert "| noisy |" in result.stdout
     saved = json.loads((tmp_path / "val.json").read_text())
     assert saved["meta"]["split"] == "val" and saved["metrics"]["noisy"]["pairs"] == 2
+
+
+def test_plot_marks_where_a_resumed_run_changed_its_pairs(tmp_path):
+    from training.plot_curves import plot_curves, read_log_segments
+
+    records = [{"type": "start", "wall_time_s": 0.0, "args": {}}]
+    records += [{"type": "train", "step": s, "wall_time_s": float(s), "loss": 2.0, "lr": 1e-3, "pairs_seen": s}
+                for s in range(1, 5)]
+    records += [{"type": "resume", "wall_time_s": 4.0, "args": {"any_orientation": False}},
+                {"type": "resume", "wall_time_s": 6.0, "args": {"any_orientation": True}},
+                {"type": "val", "step": 6, "wall_time_s": 6.5, "val_loss": 1.0, "val_rot_median_deg": 1.0},
+                {"type": "resume", "wall_time_s": 8.0, "args": {"any_orientation": True}}]
+    log = tmp_path / "log.jsonl"
+    log.write_text("\n".join(json.dumps(r) for r in records) + "\n{cut by a cra")
+    train, val, changes = read_log_segments(log)
+    assert len(train) == 4 and len(val) == 1
+    # a resume with unchanged pairs is no change; the switch to any orientation is one
+    assert [t for t, _ in changes] == [0.0, 6.0] and "any orientation" in changes[1][1]
+    assert plot_curves(log, tmp_path / "curves.png").stat().st_size > 10_000

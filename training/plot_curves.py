@@ -12,7 +12,9 @@ Panels (x axis: accumulated training wall time, hours or minutes):
 4. learning rate.
 
 Lines of a resumed run's log are read in order; the wall time already accumulates across
-sessions in the log itself.
+sessions in the log itself. Where a resumed run changed the pairs it trains and validates on
+(``--any-orientation``), a vertical line marks the change on every panel: validation figures
+on either side of it are measured on different pairs.
 """
 
 from __future__ import annotations
@@ -31,7 +33,22 @@ import numpy as np  # noqa: E402
 
 def read_log(path) -> tuple[list[dict], list[dict]]:
     """(train records, val records) of a log, skipping lines cut by a crash."""
-    train, val = [], []
+    train, val, _ = read_log_segments(path)
+    return train, val
+
+
+def pair_protocol(args: dict) -> str:
+    """How a run drew its pairs, from the ``args`` of its start / resume record."""
+    return "any orientation" if args.get("any_orientation") else "upright pairs (paper protocol)"
+
+
+def read_log_segments(path) -> tuple[list[dict], list[dict], list[tuple[float, str]]]:
+    """(train records, val records, changes) of a log, skipping lines cut by a crash.
+
+    ``changes`` lists (wall time in s, pair protocol) at the start of the log and wherever a
+    resumed run's :func:`pair_protocol` differs from the run before it.
+    """
+    train, val, changes = [], [], []
     for line in Path(path).read_text().splitlines():
         try:
             record = json.loads(line)
@@ -41,7 +58,11 @@ def read_log(path) -> tuple[list[dict], list[dict]]:
             train.append(record)
         elif record.get("type") == "val":
             val.append(record)
-    return train, val
+        elif record.get("type") in ("start", "resume"):
+            protocol = pair_protocol(record.get("args") or {})
+            if not changes or changes[-1][1] != protocol:
+                changes.append((float(record.get("wall_time_s") or 0.0), protocol))
+    return train, val, changes
 
 
 def smooth(values: np.ndarray, window: int) -> np.ndarray:
@@ -63,7 +84,7 @@ def _column(records: list[dict], key: str) -> np.ndarray:
 
 def plot_curves(log_path, out_path, smooth_window: int = 50, title: str | None = None) -> Path:
     """Render the figure; returns the output path."""
-    train, val = read_log(log_path)
+    train, val, changes = read_log_segments(log_path)
     if not train and not val:
         raise ValueError(f"{log_path}: no train or val records")
     all_times = _column(train + val, "wall_time_s")
@@ -108,6 +129,11 @@ def plot_curves(log_path, out_path, smooth_window: int = 50, title: str | None =
             axis.legend(fontsize=8)
         axis.grid(alpha=0.3)
     lr_axis.grid(alpha=0.3)
+    for wall_time, protocol in changes[1:] if len(changes) > 1 else []:
+        for axis in (loss_axis, match_axis, rot_axis, lr_axis):
+            axis.axvline(wall_time / scale, color="black", linestyle=":", linewidth=1)
+        loss_axis.annotate(f"from here: {protocol}", (wall_time / scale, 0.97), xycoords=("data", "axes fraction"),
+                           xytext=(4, 0), textcoords="offset points", fontsize=8, va="top")
     if train:
         last = train[-1]
         figure.suptitle(
