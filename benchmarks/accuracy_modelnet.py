@@ -33,6 +33,7 @@ from common import (  # noqa: E402
     SUCCESS_ROTATION_DEG,
     SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
+    bundled_model_id,
     command_line,
     is_success,
     machine_info,
@@ -129,7 +130,7 @@ def main(argv=None) -> int:
         methods = [m for m in methods if m not in OPEN3D_METHODS]
         print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh)
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id())
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]
     coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))

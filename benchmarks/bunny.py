@@ -62,6 +62,7 @@ from common import (  # noqa: E402
     SUCCESS_TRANSLATION_FRACTION,
     BenchmarkPair,
     ResultCache,
+    bundled_model_id,
     command_line,
     machine_info,
     markdown_table,
@@ -539,7 +540,7 @@ def main(argv=None) -> int:
         print(f"open3d is not installed (pip install open3d): skipping {skipped}",
               file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh)
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id())
     runner = MethodRunner(methods, threads=args.threads)
 
     scans = load_scans()

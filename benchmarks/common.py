@@ -22,6 +22,7 @@ import subprocess
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from hashlib import sha256
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,7 @@ if str(ROOT) not in sys.path:  # scripts run as `python benchmarks/x.py` from th
     sys.path.insert(0, str(ROOT))
 
 from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg  # noqa: E402
+from logdesc_rt.network import bundled_model_dir, read_manifest  # noqa: E402
 from logdesc_rt.synthetic import SOURCE_POINTS, Pair, make_pair  # noqa: E402
 
 DATA_ROOT = ROOT.parent / "shared" / "data"
@@ -154,16 +156,41 @@ def pair_record(pair: BenchmarkPair, method: str, result) -> dict:
     return record
 
 
+LEARNED_METHOD_PREFIX = "logdesc_"
+
+
+def is_learned_method(method: str) -> bool:
+    """Whether a method's results depend on the bundled model (all ``logdesc_*`` methods)."""
+    return method.startswith(LEARNED_METHOD_PREFIX)
+
+
+def bundled_model_id(model_dir: Path | None = None) -> str:
+    """A short fingerprint of a model directory's ONNX files (default: the bundled model).
+
+    Derived from the SHA-256 checksums in its manifest, so retraining or re-exporting the
+    model changes it.
+    """
+    manifest = read_manifest(Path(model_dir) if model_dir is not None else bundled_model_dir())
+    digest = sha256("".join(f"{name}:{manifest.checksums[name]};" for name in sorted(manifest.checksums)).encode())
+    return digest.hexdigest()[:12]
+
+
 class ResultCache:
     """Append-only JSON-lines file of pair records; resumes an interrupted run.
 
     The repository keeps a gzipped copy (``<name>.jsonl.gz``, a fifth of the size); when only
     that exists it is unpacked next to it first, so the reports can be rebuilt without
     recomputing and new records append to the plain file.
+
+    With ``model_id`` (:func:`bundled_model_id`), records of learned methods are stamped with
+    it, and on loading those of another model (or of none) are dropped from the file: they are
+    re-run, while the classical methods' records stay.
     """
 
-    def __init__(self, path: Path, fresh: bool = False) -> None:
+    def __init__(self, path: Path, fresh: bool = False, model_id: str | None = None) -> None:
         self.path = Path(path)
+        self.model_id = model_id
+        self.stale = 0  # learned-method records of another model dropped on loading
         self.records: dict[tuple[str, int, str], dict] = {}
         packed = self.path.with_name(self.path.name + ".gz")
         if fresh:  # start over: forget the plain file and do not unpack the kept copy
@@ -174,7 +201,16 @@ class ResultCache:
             for line in self.path.read_text().splitlines():
                 if line.strip():
                     record = json.loads(line)
+                    if self._is_stale(record):
+                        self.stale += 1
+                        continue
                     self.records[(record["protocol"], record["index"], record["method"])] = record
+            if self.stale:  # rewrite without them, so that the kept copy holds one model's results
+                self.path.write_text("".join(json.dumps(r) + "\n" for r in self.records.values()))
+
+    def _is_stale(self, record: dict) -> bool:
+        return (self.model_id is not None and is_learned_method(record["method"])
+                and record.get("model") != self.model_id)
 
     def has(self, protocol: str, index: int, methods: Iterable[str]) -> bool:
         return all((protocol, index, method) in self.records for method in methods)
@@ -183,6 +219,8 @@ class ResultCache:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.path.open("a") as handle:
             for record in records:
+                if self.model_id is not None and is_learned_method(record["method"]):
+                    record = {**record, "model": self.model_id}
                 self.records[(record["protocol"], record["index"], record["method"])] = record
                 handle.write(json.dumps(record) + "\n")
 

@@ -3,6 +3,7 @@ and one end-to-end run of the ModelNet10 accuracy script on a single pair."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 from pathlib import Path
@@ -144,3 +145,35 @@ def test_accuracy_script_end_to_end_on_one_pair(shared_data, tmp_path):
     lines = (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines()
     accuracy_modelnet.main(["--pairs", "1", "--protocols", "partial", "--methods", "logdesc_fsr", "--out", str(tmp_path)])
     assert (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines() == lines
+
+
+def test_result_cache_reruns_learned_methods_of_another_model(tmp_path):
+    path = tmp_path / "pairs.jsonl"
+    old = common.ResultCache(path, model_id="old-model")
+    old.add([{**_record(1.0, 0.0, index=3), "method": "logdesc_fsr"},
+             {**_record(2.0, 0.0, index=3), "method": "fpfh_fgr"}])
+    assert old.records[("p", 3, "logdesc_fsr")]["model"] == "old-model"
+    assert "model" not in old.records[("p", 3, "fpfh_fgr")]  # classical: no model to depend on
+    same = common.ResultCache(path, model_id="old-model")
+    assert same.stale == 0 and same.has("p", 3, ["logdesc_fsr", "fpfh_fgr"])
+    new = common.ResultCache(path, model_id="new-model")
+    assert new.stale == 1 and not new.has("p", 3, ["logdesc_fsr"]) and new.has("p", 3, ["fpfh_fgr"])
+    # the stale record is gone from the file too, so the packed copy holds one model's results
+    assert common.ResultCache(path).records.keys() == {("p", 3, "fpfh_fgr")}
+
+
+def test_bundled_model_id_follows_the_onnx_files(tmp_path):
+    import shutil
+
+    from logdesc_rt.network import bundled_model_dir
+
+    copy = tmp_path / "model"
+    shutil.copytree(bundled_model_dir(), copy)
+    assert common.bundled_model_id(copy) == common.bundled_model_id()
+    # a re-exported matcher: other bytes, and the manifest's checksum updated to match
+    matcher = copy / "matcher.onnx"
+    matcher.write_bytes(matcher.read_bytes() + b"\0")
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["checksums"]["matcher.onnx"] = hashlib.sha256(matcher.read_bytes()).hexdigest()
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(copy) != common.bundled_model_id()
