@@ -555,8 +555,10 @@ def main(argv=None) -> int:
     total = len(scans) * args.trials + len(real_pairs)
     with tqdm(total=total, desc="Bunny pairs", unit="pair", dynamic_ncols=True) as bar:
         for pair in pairs:
-            if not is_cached(cache, pair, methods):
-                results = runner.run(pair.source, pair.target, seed=pair.index)
+            # Only what the cache lacks: after a model change, the learned methods alone.
+            to_run = [m for m in methods if not is_cached(cache, pair, [m])]
+            if to_run:
+                results = runner.run(pair.source, pair.target, seed=pair.index, methods=to_run)
                 cache.add(pair_record(pair, m, result) for m, result in results.items())
             indices[pair.protocol].append(pair.index)
             bar.update(1)

@@ -38,7 +38,7 @@ calls; each child makes one untimed warm-up call first.
    match count and the rotation error (degrees, against the true motion) of the last
    call say what the timed calls achieved.
 2. onnxruntime (ORT) vs torch eager: the same weights (the shipped ONNX model was
-   exported from ``training/checkpoints/small_h100_last.pt``), the same float32 inputs
+   exported from ``training/checkpoints/small_h100_v2.pt``), the same float32 inputs
    (the geometry is computed once, by the parent), the same T threads, torch under
    ``torch.inference_mode()``. Each backend calls its two networks directly (no
    pipeline around them) in its own child: descriptor net = both clouds, matcher net
@@ -105,7 +105,7 @@ from logdesc_rt.synthetic import (  # noqa: E402
 STEM = "latency"
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
 BUNNY_SCAN = DATA_ROOT / "stanford_bunny" / "data" / "bun000.ply"
-CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_last.pt"
+CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_v2.pt"
 OPEN3D_PEERS = ("fpfh_ransac", "fpfh_fgr")
 # Pinned to --threads in every child, so that every library uses the same T threads.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")

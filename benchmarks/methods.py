@@ -257,9 +257,16 @@ class MethodRunner:
         self.parameters = parameters or FpfhParameters.tuned()
         needs_network = any(m.startswith("logdesc") for m in self.methods)
         self.registrar = registrar or (Registrar(threads=threads) if needs_network else None)
+        self._subsets: dict[tuple[str, ...], MethodRunner] = {}
 
-    def run(self, source: np.ndarray, target: np.ndarray, seed: int = 0) -> dict[str, MethodResult]:
-        """All selected methods on one pair of user-frame clouds (N, 3) / (M, 3)."""
+    def run(
+        self, source: np.ndarray, target: np.ndarray, seed: int = 0, methods=None
+    ) -> dict[str, MethodResult]:
+        """The selected methods (or the subset ``methods`` of them) on one pair of user-frame
+        clouds (N, 3) / (M, 3). A subset runs only what it needs: e.g. the learned methods
+        alone, when a cache already holds the classical ones."""
+        if methods is not None and tuple(methods) != self.methods:
+            return self._subset(tuple(methods)).run(source, target, seed)
         results: dict[str, MethodResult] = {}
         if any(m.startswith("logdesc") for m in self.methods):
             results.update(self._logdesc(source, target, seed))
@@ -273,6 +280,15 @@ class MethodRunner:
         if "icp_point_to_plane" in classical:
             results["icp_point_to_plane"] = self._icp(source, target, normalization.scale)
         return {name: results[name] for name in self.methods}
+
+    def _subset(self, methods: tuple[str, ...]) -> MethodRunner:
+        """A runner of some of this one's methods, sharing its network and parameters."""
+        unknown = set(methods) - set(self.methods)
+        if unknown:
+            raise ValueError(f"methods {sorted(unknown)} are not among this runner's {self.methods}")
+        if methods not in self._subsets:
+            self._subsets[methods] = MethodRunner(methods, self.parameters, registrar=self.registrar)
+        return self._subsets[methods]
 
     def _logdesc(self, source, target, seed) -> dict[str, MethodResult]:
         start = time.perf_counter()

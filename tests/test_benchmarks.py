@@ -75,7 +75,7 @@ def test_runner_rejects_unknown_methods():
 
 
 def test_logdesc_estimators_share_one_set_of_matches(shared_data):
-    pair = next(common.modelnet10_test_pairs(["partial"], count=2))
+    pair = next(common.modelnet10_test_pairs(["noisy"], count=1))
     runner = methods.MethodRunner(methods.LOGDESC_METHODS + ("logdesc_fsr_icp",))
     results = runner.run(pair.source, pair.target, seed=0)
     assert list(results) == [*methods.LOGDESC_METHODS, "logdesc_fsr_icp"]
@@ -84,7 +84,8 @@ def test_logdesc_estimators_share_one_set_of_matches(shared_data):
         assert np.array_equal(result.pred_match, fsr_matches)
         assert not result.failed
     record = common.pair_record(pair, "logdesc_fsr", results["logdesc_fsr"])
-    # Shape 0 of the test split, noisy + partial: the bundled model measured ~4 deg here.
+    # Shape 0 of the test split, noisy: the bundled model (small-h100-v2) measured 0.65 deg
+    # here, 0.41 after ICP. A plumbing check, not an accuracy claim (see benchmarks/results).
     assert record["rotation_error_deg"] < 10.0
     assert 0.0 < record["precision"] <= 1.0
     # ICP starts from FSR's pose: the refined pose differs, but stays close.
@@ -177,3 +178,15 @@ def test_bundled_model_id_follows_the_onnx_files(tmp_path):
     manifest["checksums"]["matcher.onnx"] = hashlib.sha256(matcher.read_bytes()).hexdigest()
     (copy / "manifest.json").write_text(json.dumps(manifest))
     assert common.bundled_model_id(copy) != common.bundled_model_id()
+
+
+def test_runner_runs_a_subset_with_the_same_results(shared_data):
+    pair = next(common.modelnet10_test_pairs(["noisy"], count=1))
+    runner = methods.MethodRunner(("logdesc_fsr", "logdesc_svd", "icp_point_to_plane"))
+    everything = runner.run(pair.source, pair.target, seed=0)
+    learned = runner.run(pair.source, pair.target, seed=0, methods=["logdesc_svd"])
+    assert list(learned) == ["logdesc_svd"]
+    np.testing.assert_allclose(learned["logdesc_svd"].transformation, everything["logdesc_svd"].transformation, atol=1e-9)
+    assert runner._subset(("logdesc_svd",)).registrar is runner.registrar  # one network, loaded once
+    with pytest.raises(ValueError, match="not among"):
+        runner.run(pair.source, pair.target, methods=["fpfh_fgr"])

@@ -16,7 +16,7 @@ from logdesc_rt.errors import RegistrationError  # noqa: E402
 from logdesc_rt.network import OnnxNetwork, bundled_model_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED_CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_last.pt"
+SHIPPED_CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_v2.pt"
 
 
 def test_bundled_model_matches_its_torch_checkpoint():
