@@ -89,10 +89,8 @@ from common import (  # noqa: E402
 )
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from logdesc_rt.geometry import compute_geometry  # noqa: E402
 from logdesc_rt.io import read_point_cloud  # noqa: E402
 from logdesc_rt.network import bundled_model_dir, read_manifest  # noqa: E402
-from logdesc_rt.normalization import PairNormalization  # noqa: E402
 from logdesc_rt.sampling import farthest_point_sampling  # noqa: E402
 from logdesc_rt.synthetic import (  # noqa: E402
     MAX_ANGLE_DEG,
@@ -261,21 +259,21 @@ def _with_noise(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def network_inputs(source: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
-    """The networks' inputs for one pair, computed as ``Registrar.match`` computes them.
+    """The networks' inputs for one pair: ``Registrar.prepare`` at a working size of N (so
+    that nothing is subsampled and both backends see all N points).
 
     Returns:
         float32 arrays: src_edges / tgt_edges (N, k, 15); src_points / tgt_points
         (N, 3), network units; src_normals / tgt_normals (N, 3) unit normals.
     """
-    manifest = read_manifest(bundled_model_dir())
-    normalization = PairNormalization.fit(source, target, manifest.normalization)
-    clouds = {
-        "src": normalization.source_to_network(source),
-        "tgt": normalization.target_to_network(target),
-    }
+    from logdesc_rt import Registrar  # as in the children: the parent stays light until needed
+
+    prepared = Registrar(max_points=max(len(source), len(target))).prepare(source, target)
     inputs = {}
-    for prefix, points in clouds.items():
-        geometry = compute_geometry(points, manifest.geometry)
+    for prefix, points, geometry in (
+        ("src", prepared.source_network, prepared.source_geometry),
+        ("tgt", prepared.target_network, prepared.target_geometry),
+    ):
         inputs[f"{prefix}_edges"] = geometry.edges.astype(np.float32)
         inputs[f"{prefix}_points"] = points.astype(np.float32)
         inputs[f"{prefix}_normals"] = geometry.normals.astype(np.float32)

@@ -14,6 +14,7 @@ from .io import read_point_cloud, write_point_cloud
 from .registration import (
     Descriptors,
     PairMatches,
+    PreparedPair,
     Registrar,
     RegistrationResult,
     describe,
@@ -29,6 +30,7 @@ __all__ = [
     "NormalizationConfig",
     "PairMatches",
     "PointGeometry",
+    "PreparedPair",
     "Registrar",
     "RegistrationResult",
     "compute_geometry",

@@ -24,7 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from .errors import RegistrationError
-from .geometry import compute_geometry
+from .geometry import PointGeometry, compute_geometry
 from .io import read_point_cloud
 from .matching import Matches, log_optimal_transport, mutual_matches
 from .network import OnnxNetwork
@@ -119,6 +119,32 @@ class Descriptors:
     indices: np.ndarray
     descriptors: np.ndarray
     normals: np.ndarray
+
+
+@dataclass(frozen=True)
+class PreparedPair:
+    """One pair made ready for the networks (:meth:`Registrar.prepare`): loaded, checked,
+    subsampled to the working size, mapped into network units, with its geometry.
+
+    Attributes:
+        source_points, target_points: (N, 3) / (M, 3) float64 clouds as given (user frame).
+        source_index, target_index: (Ns,) / (Mt,) int64, the working subsets' indices.
+        normalization: maps the working subsets to network units and poses back.
+        source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
+        source_geometry, target_geometry: their kNN, PCA features, normals and (N, k, 15) edges.
+        timings: stage name -> seconds: load, subsample, geometry.
+    """
+
+    source_points: np.ndarray
+    target_points: np.ndarray
+    source_index: np.ndarray
+    target_index: np.ndarray
+    normalization: PairNormalization
+    source_network: np.ndarray
+    target_network: np.ndarray
+    source_geometry: PointGeometry
+    target_geometry: PointGeometry
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -299,6 +325,46 @@ class Registrar:
         another estimator (``benchmarks/`` does both). Takes the same clouds as
         :meth:`register`; never raises for too few matches (check ``len(result.matches)``).
         """
+        prepared = self.prepare(source, target)
+        timings = dict(prepared.timings)
+        network_source, network_target = prepared.source_network, prepared.target_network
+        with _timed(timings, "descriptors"):
+            source_descriptors = self.network.describe(prepared.source_geometry.edges, network_source)
+            target_descriptors = self.network.describe(prepared.target_geometry.edges, network_target)
+        with _timed(timings, "matcher"):
+            scores = self.network.match_scores(
+                source_descriptors,
+                target_descriptors,
+                prepared.source_geometry.normals,
+                prepared.target_geometry.normals,
+            )
+        with _timed(timings, "matching"):
+            log_assignment = log_optimal_transport(
+                scores, self.manifest.dustbin_score, self.manifest.matching.sinkhorn_iterations
+            )
+            matches = mutual_matches(log_assignment, self.manifest.matching.match_threshold)
+        return PairMatches(
+            source_points=prepared.source_points,
+            target_points=prepared.target_points,
+            source_index=prepared.source_index,
+            target_index=prepared.target_index,
+            normalization=prepared.normalization,
+            source_network=network_source,
+            target_network=network_target,
+            source_descriptors=source_descriptors,
+            target_descriptors=target_descriptors,
+            log_assignment=log_assignment,
+            matches=matches,
+            timings=timings,
+        )
+
+    def prepare(self, source, target) -> PreparedPair:
+        """Everything before the networks: load and check both clouds, subsample each to the
+        working size, map both into network units (one shared scale), compute the geometry.
+
+        :meth:`match` starts from this; ``benchmarks/latency.py`` feeds its output to torch and
+        onnxruntime alike. Takes the same clouds as :meth:`register`.
+        """
         timings: dict[str, float] = {}
         with _timed(timings, "load"):
             source_points = self._load(source, "source")
@@ -311,23 +377,10 @@ class Registrar:
         )
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
-
         with _timed(timings, "geometry"):
             source_geometry = compute_geometry(network_source, self.manifest.geometry)
             target_geometry = compute_geometry(network_target, self.manifest.geometry)
-        with _timed(timings, "descriptors"):
-            source_descriptors = self.network.describe(source_geometry.edges, network_source)
-            target_descriptors = self.network.describe(target_geometry.edges, network_target)
-        with _timed(timings, "matcher"):
-            scores = self.network.match_scores(
-                source_descriptors, target_descriptors, source_geometry.normals, target_geometry.normals
-            )
-        with _timed(timings, "matching"):
-            log_assignment = log_optimal_transport(
-                scores, self.manifest.dustbin_score, self.manifest.matching.sinkhorn_iterations
-            )
-            matches = mutual_matches(log_assignment, self.manifest.matching.match_threshold)
-        return PairMatches(
+        return PreparedPair(
             source_points=source_points,
             target_points=target_points,
             source_index=source_index,
@@ -335,10 +388,8 @@ class Registrar:
             normalization=normalization,
             source_network=network_source,
             target_network=network_target,
-            source_descriptors=source_descriptors,
-            target_descriptors=target_descriptors,
-            log_assignment=log_assignment,
-            matches=matches,
+            source_geometry=source_geometry,
+            target_geometry=target_geometry,
             timings=timings,
         )
 

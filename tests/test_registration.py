@@ -71,6 +71,24 @@ def test_match_then_pose_equals_register(registrar, demo_pair):
         pair.pose("magic")
 
 
+def test_prepare_is_where_match_starts(registrar, demo_pair):
+    """``Registrar.prepare`` gives the clouds and geometry ``match`` feeds to the networks."""
+    from logdesc_rt import compute_geometry
+
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    assert set(prepared.timings) == {"load", "subsample", "geometry"}
+    expected = prepared.normalization.source_to_network(demo_pair.source[prepared.source_index])
+    assert np.array_equal(prepared.source_network, expected)
+    assert np.array_equal(prepared.source_geometry.edges, compute_geometry(expected, registrar.manifest.geometry).edges)
+    pair = registrar.match(demo_pair.source, demo_pair.target)
+    assert np.array_equal(pair.target_network, prepared.target_network)
+    descriptors = registrar.network.describe(prepared.source_geometry.edges, prepared.source_network)
+    assert np.array_equal(pair.source_descriptors, descriptors)
+    # a larger working size than the cloud: nothing is subsampled (the latency benchmark's use)
+    big = Registrar(max_points=4 * len(demo_pair.source)).prepare(demo_pair.source, demo_pair.target)
+    assert len(big.source_index) == len(demo_pair.source) and len(big.target_index) == len(demo_pair.target)
+
+
 def test_user_units_and_placement_do_not_matter(registrar, demo_pair):
     """A metre-scale copy placed far away gives the same rotation and the scaled translation."""
     scale, offset = 0.05, np.array([120.0, -30.0, 4.0])

@@ -129,7 +129,7 @@ def plot_curves(log_path, out_path, smooth_window: int = 50, title: str | None =
             axis.legend(fontsize=8)
         axis.grid(alpha=0.3)
     lr_axis.grid(alpha=0.3)
-    for wall_time, protocol in changes[1:] if len(changes) > 1 else []:
+    for wall_time, protocol in changes[1:]:  # the first entry is the log's start
         for axis in (loss_axis, match_axis, rot_axis, lr_axis):
             axis.axvline(wall_time / scale, color="black", linestyle=":", linewidth=1)
         loss_axis.annotate(f"from here: {protocol}", (wall_time / scale, 0.97), xycoords=("data", "axes fraction"),
