@@ -147,6 +147,11 @@ class OnnxNetwork:
         options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # No memory pattern: point counts vary between calls, and from the second call on the
+        # planner pre-allocates the recorded pattern beside the arena's blocks. Measured peak
+        # above baseline, both networks, four calls at N = 1024 / 2048 / 4096 points:
+        # 557 / 1980 / ~7640 MiB with it, 297 / 1201 / 4936 MiB without (benchmarks/latency.py).
+        options.enable_mem_pattern = False
         if threads is not None:
             if threads < 1:
                 raise ValueError(f"threads: {threads} < 1")
