@@ -258,17 +258,17 @@ def _with_noise(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return points + np.clip(noise, -NOISE_CLIP, NOISE_CLIP)
 
 
-def network_inputs(source: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
-    """The networks' inputs for one pair: ``Registrar.prepare`` at a working size of N (so
-    that nothing is subsampled and both backends see all N points).
+def network_inputs(registrar, source: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
+    """The networks' inputs for one pair: ``registrar.prepare``, whose working size must be at
+    least N (so that nothing is subsampled and both backends see all N points).
 
     Returns:
         float32 arrays: src_edges / tgt_edges (N, k, 15); src_points / tgt_points
         (N, 3), network units; src_normals / tgt_normals (N, 3) unit normals.
     """
-    from logdesc_rt import Registrar  # as in the children: the parent stays light until needed
-
-    prepared = Registrar(max_points=max(len(source), len(target))).prepare(source, target)
+    prepared = registrar.prepare(source, target)
+    if len(prepared.source_index) < len(source) or len(prepared.target_index) < len(target):
+        raise ValueError(f"the registrar's working size {registrar.max_points} would subsample the pair")
     inputs = {}
     for prefix, points, geometry in (
         ("src", prepared.source_network, prepared.source_geometry),
@@ -282,10 +282,14 @@ def network_inputs(source: np.ndarray, target: np.ndarray) -> dict[str, np.ndarr
 
 def save_inputs(path: Path, pairs: dict[int, dict]) -> None:
     """Write every pair and its network inputs into the one .npz all children read."""
+    from logdesc_rt import Registrar  # as in the children: the parent stays light until needed
+
+    # One registrar (one model load) for every size: its working size is the largest N.
+    registrar = Registrar(max_points=max(len(pair[name]) for pair in pairs.values() for name in ("source", "target")))
     arrays = {}
     for size, pair in pairs.items():
         arrays.update({f"{name}_{size}": value for name, value in pair.items()})
-        inputs = network_inputs(pair["source"], pair["target"])
+        inputs = network_inputs(registrar, pair["source"], pair["target"])
         arrays.update({f"{name}_{size}": value for name, value in inputs.items()})
     np.savez(path, **arrays)
 

@@ -31,12 +31,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def read_log(path) -> tuple[list[dict], list[dict]]:
-    """(train records, val records) of a log, skipping lines cut by a crash."""
-    train, val, _ = read_log_segments(path)
-    return train, val
-
-
 def pair_protocol(args: dict) -> str:
     """How a run drew its pairs, from the ``args`` of its start / resume record."""
     return "any orientation" if args.get("any_orientation") else "upright pairs (paper protocol)"
