@@ -1,8 +1,16 @@
 """ICP refinement on the full clouds, from the pose the learned pipeline estimated.
 
 Point-to-point (closed-form SVD each iteration) or point-to-plane (linearised least squares
-with target normals from a 10-neighbour PCA, the same :func:`~logdesc_rt.geometry.pca_features`
-the network's geometry uses). Correspondences farther than ``max_distance`` are ignored.
+with target normals from a PCA of each target point's nearest neighbours). Correspondences
+farther than ``max_distance`` are ignored.
+
+Placement and unit do not matter: ICP runs in a working frame where the target is centred on
+its centroid and lengths are divided by ``max_distance``, and the point-to-plane step
+linearises the rotation about the centroid of the current correspondences, not about the
+origin. The result is mapped back to the user's frame exactly (a similarity), so two clouds
+shifted by 1e5 m or given in millimetres instead of metres refine to the same pose
+(``tests/test_refinement.py``). Linearising about the origin, as before, made a rotation of
+the clouds 5 m away look like a huge translation and the step diverged.
 """
 
 from __future__ import annotations
@@ -13,31 +21,71 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
-from .geometry import pca_features
 from .pose import rigid_transform_svd
+from .pose.evaluation import check_rigid_transformation
+from .validation import as_points
 
 ICP_METHODS = ("point_to_point", "point_to_plane")
-_NORMAL_NEIGHBOURS = 10
+NORMAL_NEIGHBOURS = 10  # target points whose covariance gives each target normal
+MIN_CORRESPONDENCES = 6  # fewer and a step is not well determined
 
 
 @dataclass(frozen=True)
 class IcpResult:
-    """Refined pose and how it ended.
+    """Refined pose and how ICP ended.
 
     Attributes:
-        transformation: (4, 4) float64, source -> target.
+        transformation: (4, 4) float64, source -> target, user frame.
         iterations: ICP iterations run.
-        converged: the last update moved less than the tolerance.
+        converged: the last update moved less than the tolerance (False also when ICP stopped
+            for lack of correspondences, or ran out of iterations).
+        fitness: share of source points with a target point within ``max_distance`` under
+            ``transformation``, in [0, 1].
+        inlier_rmse: RMS distance of those pairs, the clouds' unit; NaN when there are none.
+        stop_reason: "converged", "max_iterations" or "too_few_correspondences".
     """
 
     transformation: np.ndarray
     iterations: int
     converged: bool
+    fitness: float
+    inlier_rmse: float
+    stop_reason: str
+
+    def to_dict(self) -> dict:
+        """JSON-friendly summary (NaN becomes None)."""
+        return {
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "fitness": self.fitness,
+            "inlier_rmse": None if np.isnan(self.inlier_rmse) else self.inlier_rmse,
+            "stop_reason": self.stop_reason,
+        }
+
+
+def estimate_normals(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+    """(N, 3) unit normals: the least-variance axis of each point's ``neighbours`` nearest.
+
+    Args:
+        points: (N, 3) float64, N >= 3; centre and scale them first for accuracy far away
+            from the origin (covariances are taken about each neighbourhood's mean anyway).
+        neighbours: k, the point itself included (capped at N).
+
+    Returns:
+        (N, 3) float64 unit vectors; their sign is arbitrary (point-to-plane does not care).
+    """
+    k = int(min(max(neighbours, 3), len(points)))
+    _, index = KDTree(points).query(points, k=k)
+    neighbourhoods = points[index.reshape(len(points), k)]  # (N, k, 3)
+    centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
+    covariance = np.einsum("nki,nkj->nij", centred, centred)
+    _, vectors = np.linalg.eigh(covariance)  # ascending eigenvalues
+    return vectors[:, :, 0]
 
 
 def icp(
-    source: np.ndarray,
-    target: np.ndarray,
+    source,
+    target,
     initial: np.ndarray,
     max_distance: float,
     method: str = "point_to_plane",
@@ -47,49 +95,99 @@ def icp(
     """Refine ``initial`` by iterative closest points.
 
     Args:
-        source: (N, 3) float64 points, validated.
-        target: (M, 3) float64 points, validated, M >= 10.
-        initial: (4, 4) starting pose, source -> target.
-        max_distance: correspondences farther than this are dropped (clouds' units).
+        source: (N, 3) points, any unit and placement, N >= 1.
+        target: (M, 3) points, same unit, M >= 3.
+        initial: (4, 4) rigid starting pose, source -> target.
+        max_distance: > 0, correspondences farther than this are dropped (clouds' unit).
         method: "point_to_point" or "point_to_plane".
-        max_iterations: upper bound on iterations.
-        tolerance: stop when the update's rotation (radians) plus translation (relative to
+        max_iterations: upper bound on iterations (>= 1).
+        tolerance: stop when an update's rotation (radians) plus translation (as a fraction of
             ``max_distance``) is below this.
+
+    Returns:
+        :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose.
+
+    Raises:
+        ValueError: unknown method, ``max_distance`` not > 0, ``initial`` not a rigid (4, 4)
+            transform, or ``max_iterations`` < 1.
+        InvalidPointCloudError (and subclasses): bad clouds.
     """
     if method not in ICP_METHODS:
         raise ValueError(f"refinement method {method!r}: expected one of {ICP_METHODS}")
-    if not max_distance > 0:
-        raise ValueError(f"max_distance: {max_distance} must be > 0")
-    tree = KDTree(target)
-    normals = None
-    if method == "point_to_plane":
-        k = min(_NORMAL_NEIGHBOURS, len(target))
-        normals = pca_features(target, np.inf, k, k).lrf[:, :, 2]
-    pose = np.array(initial, dtype=np.float64)
+    max_distance = float(max_distance)
+    if not (np.isfinite(max_distance) and max_distance > 0):
+        raise ValueError(f"max_distance: {max_distance} must be finite and > 0")
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations: {max_iterations} must be >= 1")
+    source = as_points(source, name="source", min_points=1)
+    target = as_points(target, name="target", min_points=3)
+    initial = check_rigid_transformation(initial, name="initial")
+
+    # Working frame: x_w = (x - centre) / unit, the same similarity for both clouds.
+    centre = target.mean(axis=0)
+    unit = max_distance
+    to_working = np.eye(4)
+    to_working[:3, :3] /= unit
+    to_working[:3, 3] = -centre / unit
+    from_working = np.eye(4)
+    from_working[:3, :3] *= unit
+    from_working[:3, 3] = centre
+    source_working = (source - centre) / unit
+    target_working = (target - centre) / unit
+    tree = KDTree(target_working)
+    normals = estimate_normals(target_working) if method == "point_to_plane" else None
+
+    pose = to_working @ initial @ from_working
+    stop_reason, iterations = "max_iterations", max_iterations
     for iteration in range(1, max_iterations + 1):
-        moved = source @ pose[:3, :3].T + pose[:3, 3]
-        distance, index = tree.query(moved, k=1, distance_upper_bound=max_distance)
+        moved = source_working @ pose[:3, :3].T + pose[:3, 3]
+        distance, index = tree.query(moved, k=1, distance_upper_bound=1.0)
         close = np.isfinite(distance)
-        if close.sum() < 6:
-            return IcpResult(pose, iteration - 1, converged=False)
+        if np.count_nonzero(close) < MIN_CORRESPONDENCES:
+            stop_reason, iterations = "too_few_correspondences", iteration - 1
+            break
         if normals is None:
-            step = rigid_transform_svd(moved[close], target[index[close]])
+            step = rigid_transform_svd(moved[close], target_working[index[close]])
         else:
-            step = _point_to_plane_step(moved[close], target[index[close]], normals[index[close]])
+            step = _point_to_plane_step(moved[close], target_working[index[close]], normals[index[close]])
         pose = step @ pose
-        change = np.linalg.norm(Rotation.from_matrix(step[:3, :3]).as_rotvec())
-        change += np.linalg.norm(step[:3, 3]) / max_distance
+        change = np.linalg.norm(Rotation.from_matrix(step[:3, :3]).as_rotvec()) + np.linalg.norm(step[:3, 3])
         if change < tolerance:
-            return IcpResult(pose, iteration, converged=True)
-    return IcpResult(pose, max_iterations, converged=False)
+            stop_reason, iterations = "converged", iteration
+            break
+
+    moved = source_working @ pose[:3, :3].T + pose[:3, 3]
+    distance, _ = tree.query(moved, k=1, distance_upper_bound=1.0)
+    inliers = distance[np.isfinite(distance)]
+    rmse = float(np.sqrt(np.mean(inliers**2)) * unit) if inliers.size else float("nan")
+    # Re-orthonormalise the rotation block, which repeated products drift by ~1e-16 each.
+    result = from_working @ pose @ to_working
+    result[:3, :3] = Rotation.from_matrix(result[:3, :3]).as_matrix()
+    result[3] = [0.0, 0.0, 0.0, 1.0]
+    return IcpResult(
+        transformation=result,
+        iterations=iterations,
+        converged=stop_reason == "converged",
+        fitness=inliers.size / len(source),
+        inlier_rmse=rmse,
+        stop_reason=stop_reason,
+    )
 
 
 def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """One linearised point-to-plane update: minimise sum ((R p + t - q) . n)^2 for small R."""
-    jacobian = np.concatenate([np.cross(source, normals), normals], axis=1)  # (K, 6)
+    """One linearised point-to-plane update, (4, 4), for (K, 3) pairs and target normals.
+
+    Minimises sum_k ((R (p_k - c) + c + t - q_k) . n_k)^2 with R = I + [w]x about c, the
+    centroid of the p_k: the small-angle approximation is then accurate wherever the clouds
+    sit, since |p_k - c| is the size of the overlap, not the distance to the origin.
+    """
+    pivot = source.mean(axis=0)
+    arm = source - pivot
+    jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)  # (K, 6)
     residual = np.sum((target - source) * normals, axis=1)
     solution, *_ = np.linalg.lstsq(jacobian, residual, rcond=None)
+    rotation = Rotation.from_rotvec(solution[:3]).as_matrix()
     step = np.eye(4)
-    step[:3, :3] = Rotation.from_rotvec(solution[:3]).as_matrix()
-    step[:3, 3] = solution[3:]
+    step[:3, :3] = rotation
+    step[:3, 3] = pivot + solution[3:] - rotation @ pivot
     return step
