@@ -30,7 +30,7 @@ from .matching import Matches, log_optimal_transport, mutual_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
 from .pose import FsrConfig, RansacConfig, evaluate_registration, fsr, ransac, rigid_transform_svd
-from .refinement import ICP_METHODS, icp
+from .refinement import ICP_METHODS, IcpResult, icp
 from .sampling import farthest_point_sampling, voxel_downsample
 from .validation import as_points, check_not_degenerate
 
@@ -53,11 +53,14 @@ class RegistrationResult:
         confidences: (K,) float64 match probabilities from Sinkhorn, in (0, 1].
         fitness: share of source points with a target point within
             ``max_correspondence_distance`` after the transform (full clouds).
-        inlier_rmse: RMS distance of those point pairs, user units.
+        inlier_rmse: RMS distance of those point pairs, user units; NaN when there are none
+            (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: "fsr", "svd" or "ransac".
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
+        icp: how ICP ended (iterations, converged, stop reason, its fitness / RMSE), or None
+            without refinement.
         subsampled: True if either cloud was larger than the working size.
         source_points_used, target_points_used: points the network saw per cloud.
         timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
@@ -77,6 +80,7 @@ class RegistrationResult:
     source_points_used: int
     target_points_used: int
     timings: dict[str, float] = field(default_factory=dict)
+    icp: IcpResult | None = None
 
     @property
     def rotation(self) -> np.ndarray:
@@ -93,11 +97,14 @@ class RegistrationResult:
         return {
             "transformation": self.transformation.tolist(),
             "fitness": self.fitness,
-            "inlier_rmse": self.inlier_rmse,
+            "inlier_rmse": _finite_or_none(self.inlier_rmse),
             "max_correspondence_distance": self.max_correspondence_distance,
             "correspondence_count": int(len(self.correspondences)),
+            "correspondences": self.correspondences.tolist(),
+            "confidences": self.confidences.tolist(),
             "pose_estimator": self.pose_estimator,
             "refinement": self.refinement,
+            "icp": None if self.icp is None else self.icp.to_dict(),
             "transformation_before_refinement": self.transformation_before_refinement.tolist(),
             "subsampled": self.subsampled,
             "source_points_used": self.source_points_used,
@@ -294,10 +301,11 @@ class Registrar:
         )
         if not distance > 0:
             raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
-        refined = pose
+        refined, icp_result = pose, None
         if refine is not None:
             with _timed(timings, "refinement"):
-                refined = icp(pair.source_points, pair.target_points, pose, distance, method=refine).transformation
+                icp_result = icp(pair.source_points, pair.target_points, pose, distance, method=refine)
+            refined = icp_result.transformation
         with _timed(timings, "evaluation"):
             evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
         timings["total"] = sum(timings.values())
@@ -316,6 +324,7 @@ class Registrar:
             source_points_used=len(pair.source_index),
             target_points_used=len(pair.target_index),
             timings=timings,
+            icp=icp_result,
         )
 
     def match(self, source, target) -> PairMatches:
@@ -444,6 +453,11 @@ def _estimate_pose(
     if estimator == "ransac":
         return ransac(source, target, RansacConfig(seed=seed)).transformation
     return fsr(source, target, confidence, FsrConfig(seed=seed)).transformation
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``value``, or None for NaN / inf (JSON has no NaN)."""
+    return float(value) if np.isfinite(value) else None
 
 
 @contextmanager

@@ -20,7 +20,7 @@ class RegistrationEvaluation:
     Attributes:
         fitness: inlier correspondences / number of source points, in [0, 1].
         inlier_rmse: sqrt(mean squared distance of the inlier correspondences), in the
-            clouds' unit; 0.0 when there are none.
+            clouds' unit; NaN when there are none (0 would read as a perfect fit).
         correspondence_set: (K, 2) int64 rows ``[source_index, target_index]``: each
             transformed source point and its nearest target point, when closer than the
             maximum correspondence distance.
@@ -110,7 +110,7 @@ def evaluate_registration(
     correspondence_set = np.stack([reachable[inlier], nearest[inlier]], axis=1).astype(np.int64)
     inlier_count = int(np.count_nonzero(inlier))
     with np.errstate(over="ignore"):
-        inlier_rmse = float(np.sqrt(np.mean(distances[inlier] ** 2))) if inlier_count else 0.0
+        inlier_rmse = float(np.sqrt(np.mean(distances[inlier] ** 2))) if inlier_count else float("nan")
     return RegistrationEvaluation(
         fitness=inlier_count / len(source),
         inlier_rmse=inlier_rmse,
