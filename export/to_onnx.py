@@ -61,40 +61,42 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
     out_dir.mkdir(parents=True, exist_ok=True)
     generator = torch.Generator().manual_seed(0)
     n, m = 64, 48
-    edges = torch.randn(1, n, k, config.edge_channels, generator=generator)
-    points = torch.randn(1, n, 3, generator=generator)
-    descriptors_src = torch.nn.functional.normalize(torch.randn(1, n, config.descriptor_dim, generator=generator), dim=-1)
-    descriptors_tgt = torch.nn.functional.normalize(torch.randn(1, m, config.descriptor_dim, generator=generator), dim=-1)
-    normals_src = torch.nn.functional.normalize(torch.randn(1, n, 3, generator=generator), dim=-1)
-    normals_tgt = torch.nn.functional.normalize(torch.randn(1, m, 3, generator=generator), dim=-1)
 
+    def unit(*shape: int) -> torch.Tensor:
+        return torch.nn.functional.normalize(torch.randn(*shape, generator=generator), dim=-1)
+
+    # Example inputs by name; each graph takes those its network reads (see
+    # LoGDescMatcher.describe_inputs / match_inputs), with dynamic point counts.
+    examples = {
+        "edges": torch.randn(1, n, k, config.edge_channels, generator=generator),
+        "points": torch.randn(1, n, 3, generator=generator),
+        "normals": unit(1, n, 3),
+        "descriptors_source": unit(1, n, config.descriptor_dim),
+        "descriptors_target": unit(1, m, config.descriptor_dim),
+        "normals_source": unit(1, n, 3),
+        "normals_target": unit(1, m, 3),
+        "points_source": torch.randn(1, n, 3, generator=generator),
+        "points_target": torch.randn(1, m, 3, generator=generator),
+    }
+    point_axis = {name: ("m" if name.endswith("_target") else "n") for name in examples}
+    graphs = (
+        (DescribeModule(model), model.describe_inputs, "descriptors", {1: "n"}, DESCRIPTOR_FILE),
+        (MatchScoresModule(model), model.match_inputs, "scores", {1: "n", 2: "m"}, MATCHER_FILE),
+    )
     with torch.no_grad():
-        torch.onnx.export(
-            DescribeModule(model),
-            (edges, points),
-            str(out_dir / DESCRIPTOR_FILE),
-            input_names=["edges", "points"],
-            output_names=["descriptors"],
-            dynamic_axes={"edges": {1: "n"}, "points": {1: "n"}, "descriptors": {1: "n"}},
-            opset_version=opset,
-            dynamo=False,
-        )
-        torch.onnx.export(
-            MatchScoresModule(model),
-            (descriptors_src, descriptors_tgt, normals_src, normals_tgt),
-            str(out_dir / MATCHER_FILE),
-            input_names=["descriptors_source", "descriptors_target", "normals_source", "normals_target"],
-            output_names=["scores"],
-            dynamic_axes={
-                "descriptors_source": {1: "n"},
-                "normals_source": {1: "n"},
-                "descriptors_target": {1: "m"},
-                "normals_target": {1: "m"},
-                "scores": {1: "n", 2: "m"},
-            },
-            opset_version=opset,
-            dynamo=False,
-        )
+        for module, input_names, output_name, output_axes, file_name in graphs:
+            dynamic_axes = {name: {1: point_axis[name]} for name in input_names}
+            dynamic_axes[output_name] = output_axes
+            torch.onnx.export(
+                module,
+                tuple(examples[name] for name in input_names),
+                str(out_dir / file_name),
+                input_names=list(input_names),
+                output_names=[output_name],
+                dynamic_axes=dynamic_axes,
+                opset_version=opset,
+                dynamo=False,
+            )
 
     matching = MatchingConfig(sinkhorn_iterations=config.sinkhorn_iterations)
     metadata = {
@@ -153,20 +155,23 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
     for label, source, target in cases:
         geometry_src = compute_geometry(source, info.geometry)
         geometry_tgt = compute_geometry(target, info.geometry)
+        as_input = lambda array: np.asarray(array, dtype=np.float32)[None]  # noqa: E731
+        describe_src = {"edges": as_input(geometry_src.edges), "points": as_input(source), "normals": as_input(geometry_src.normals)}
+        describe_tgt = {"edges": as_input(geometry_tgt.edges), "points": as_input(target), "normals": as_input(geometry_tgt.normals)}
         with torch.no_grad():
-            t_desc_src = model.describe(torch.from_numpy(geometry_src.edges)[None], torch.from_numpy(source).float()[None])
-            t_desc_tgt = model.describe(torch.from_numpy(geometry_tgt.edges)[None], torch.from_numpy(target).float()[None])
-            t_scores = model.match_scores(
-                t_desc_src, t_desc_tgt,
-                torch.from_numpy(geometry_src.normals).float()[None], torch.from_numpy(geometry_tgt.normals).float()[None],
-            )
-        o_desc_src = describe.run(None, {"edges": geometry_src.edges[None], "points": source[None].astype(np.float32)})[0]
-        o_desc_tgt = describe.run(None, {"edges": geometry_tgt.edges[None], "points": target[None].astype(np.float32)})[0]
-        o_scores = match.run(None, {
+            t_desc_src = model.describe(*(torch.from_numpy(describe_src[name]) for name in model.describe_inputs))
+            t_desc_tgt = model.describe(*(torch.from_numpy(describe_tgt[name]) for name in model.describe_inputs))
+        o_desc_src = describe.run(None, {name: describe_src[name] for name in model.describe_inputs})[0]
+        o_desc_tgt = describe.run(None, {name: describe_tgt[name] for name in model.describe_inputs})[0]
+        match_feeds = {
             "descriptors_source": o_desc_src, "descriptors_target": o_desc_tgt,
-            "normals_source": geometry_src.normals[None].astype(np.float32),
-            "normals_target": geometry_tgt.normals[None].astype(np.float32),
-        })[0]
+            "normals_source": describe_src["normals"], "normals_target": describe_tgt["normals"],
+            "points_source": describe_src["points"], "points_target": describe_tgt["points"],
+        }
+        with torch.no_grad():
+            # torch gets onnxruntime's descriptors too, so the scores compare the matcher alone.
+            t_scores = model.match_scores(*(torch.from_numpy(match_feeds[name]) for name in model.match_inputs))
+        o_scores = match.run(None, {name: match_feeds[name] for name in model.match_inputs})[0]
         descriptor_error = max(
             np.abs(o_desc_src - t_desc_src.numpy()).max(), np.abs(o_desc_tgt - t_desc_tgt.numpy()).max()
         )

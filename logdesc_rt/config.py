@@ -15,6 +15,11 @@ from typing import Any, TypeVar
 
 _Config = TypeVar("_Config")
 
+# Edge-feature layouts and their channel counts (see GeometryConfig.edge_layout).
+EDGE_CHANNELS = {"paper": 15, "invariant": 11}
+EDGE_LAYOUTS = tuple(EDGE_CHANNELS)
+NORMAL_SOURCES = ("umbrella", "pca")
+
 
 class _DictMixin:
     """Round-trip a flat dataclass through a JSON-friendly dict, rejecting unknown keys."""
@@ -45,6 +50,17 @@ class GeometryConfig(_DictMixin):
         umbrella_area_temperature: triangle areas are divided by this before the softmax that
             weights the triangle normals (network units squared); the official 1e-4 makes the
             largest triangle dominate.
+        edge_layout: which edge features the descriptor network reads.
+            ``"paper"``: the paper's 15 channels (absolute position, offsets in the global
+            frame, the neighbour's normal in the signed LRF; :mod:`.geometry.edge_features`).
+            ``"invariant"``: point-pair features that are unchanged by any rigid motion and by
+            the sign of every normal (:mod:`.geometry.invariant_features`).
+        normals: which unit normal per point is handed to the network.
+            ``"umbrella"``: the paper's triangle-umbrella normal.
+            ``"pca"``: the LRF's normal axis w (PCA over the ``pca_radius`` neighbourhood), the
+            one that agrees best between two noisy or partial views of a surface
+            (``benchmarks/geometry_agreement.py``); its sign carries no information for the
+            invariant layout, which reads only sign-free functions of it.
     """
 
     pca_radius: float = 0.3
@@ -52,8 +68,14 @@ class GeometryConfig(_DictMixin):
     pca_min_neighbours: int = 8
     umbrella_neighbours: int = 30
     umbrella_area_temperature: float = 1e-4
+    edge_layout: str = "paper"
+    normals: str = "umbrella"
 
     def __post_init__(self) -> None:
+        if self.edge_layout not in EDGE_LAYOUTS:
+            raise ValueError(f"GeometryConfig.edge_layout must be one of {EDGE_LAYOUTS}, got {self.edge_layout!r}")
+        if self.normals not in NORMAL_SOURCES:
+            raise ValueError(f"GeometryConfig.normals must be one of {NORMAL_SOURCES}, got {self.normals!r}")
         if not self.pca_radius > 0:
             raise ValueError(f"GeometryConfig.pca_radius must be > 0, got {self.pca_radius}")
         if self.pca_max_neighbours < 3:
@@ -76,6 +98,11 @@ class GeometryConfig(_DictMixin):
     def min_points(self) -> int:
         """The fewest points a cloud needs: k neighbours plus the point itself."""
         return self.umbrella_neighbours + 1
+
+    @property
+    def edge_channels(self) -> int:
+        """Channels of the (N, k, C) edge-feature tensor this layout produces."""
+        return EDGE_CHANNELS[self.edge_layout]
 
 
 @dataclass(frozen=True)
@@ -111,3 +138,363 @@ class MatchingConfig(_DictMixin):
             raise ValueError("MatchingConfig.sinkhorn_iterations must be >= 1")
         if not 0.0 <= self.match_threshold < 1.0:
             raise ValueError("MatchingConfig.match_threshold must be in [0, 1)")
+
+
+# ----------------------------------------------------------------------------- runtime stages
+# The configs below set what the runtime does with a pair after (or around) the networks.
+# Unlike the three above they are not fixed by the trained model; they have defaults that
+# work with the bundled model, and every one can be overridden per Registrar or per call.
+
+# Verification features, in the order of VerificationConfig.weights (logdesc_rt/verification.py
+# computes them; its module docstring defines each).
+VERIFICATION_FEATURES = (
+    "fitness",
+    "tight_fitness",
+    "rmse_ratio",
+    "reverse_fitness",
+    "normal_agreement",
+    "match_inlier_ratio",
+    "log_matches",
+    "agreement",
+    "margin",
+)
+
+
+@dataclass(frozen=True)
+class VerificationConfig(_DictMixin):
+    """Verified hypotheses and the success flag (:mod:`logdesc_rt.verification`).
+
+    Lengths are fractions of the pair's scale (the larger cloud's radius), so the same values
+    serve a unit-sphere object and a scan in millimetres.
+
+    Attributes:
+        top_k_fraction: the "top-k" hypothesis fits the most confident this share of matches.
+        source_points: source points (at most) the poses are scored on; a seeded uniform
+            subset of the full cloud.
+        target_points: target points (at most) they are scored against.
+        distance_fraction: a scored point is an inlier within this x scale (5 %, like
+            fitness); independent of the user's max_correspondence_distance, so that the
+            calibration holds whatever distance the user reports fitness at.
+        tight_fraction: the tighter distance of the ``tight_fitness`` feature, x scale.
+        match_tolerance: a learned match agrees with a pose within this, x scale (FSR's tau).
+        refine_candidates: this many best-scoring distinct candidates get a short ICP.
+        icp_iterations: iterations of that ICP (point-to-plane, on the subsets).
+        same_pose_deg: two candidates closer than this (and than ``distance_fraction`` in
+            translation) are one hypothesis; it also bounds how far the returned unrefined
+            pose may sit from its verified (refined) pose for a success.
+        weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
+        bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
+        success_threshold: success when confidence >= this.
+        seed: seeds the scoring subsets.
+    """
+
+    top_k_fraction: float = 0.25
+    source_points: int = 2000
+    target_points: int = 8000
+    distance_fraction: float = 0.05
+    tight_fraction: float = 0.015
+    match_tolerance: float = 0.08
+    refine_candidates: int = 3
+    icp_iterations: int = 20
+    same_pose_deg: float = 2.5
+    weights: tuple[float, ...] = (0.0,) * len(VERIFICATION_FEATURES)
+    bias: float = 0.0
+    success_threshold: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", tuple(float(w) for w in self.weights))
+        if len(self.weights) != len(VERIFICATION_FEATURES):
+            raise ValueError(
+                f"VerificationConfig.weights: {len(self.weights)} values, expected one per feature "
+                f"{VERIFICATION_FEATURES}"
+            )
+        if not 0.0 < self.top_k_fraction <= 1.0:
+            raise ValueError(f"VerificationConfig.top_k_fraction must be in (0, 1], got {self.top_k_fraction}")
+        for name in ("source_points", "target_points"):
+            if getattr(self, name) < 10:
+                raise ValueError(f"VerificationConfig.{name} must be >= 10, got {getattr(self, name)}")
+        for name in ("distance_fraction", "tight_fraction", "match_tolerance", "same_pose_deg"):
+            value = getattr(self, name)
+            if not 0.0 < value < float("inf"):  # also rejects NaN
+                raise ValueError(f"VerificationConfig.{name} must be finite and > 0, got {value}")
+        if self.refine_candidates < 1:
+            raise ValueError(f"VerificationConfig.refine_candidates must be >= 1, got {self.refine_candidates}")
+        if self.icp_iterations < 1:
+            raise ValueError(f"VerificationConfig.icp_iterations must be >= 1, got {self.icp_iterations}")
+        if not 0.0 <= self.success_threshold <= 1.0:
+            raise ValueError(f"VerificationConfig.success_threshold must be in [0, 1], got {self.success_threshold}")
+        if self.seed < 0:
+            raise ValueError(f"VerificationConfig.seed must be >= 0, got {self.seed}")
+
+
+@dataclass(frozen=True)
+class FsrConfig(_DictMixin):
+    """Parameters of :func:`~logdesc_rt.pose.fsr` (paper Algorithm 1; official defaults).
+
+    Attributes:
+        iterations: N, the number of sampling rounds (official: 7).
+        sample_size: k, matched points farthest-point-sampled per round. 0 (default) means
+            the official rule ``max(3, n_matches // iterations)``; any explicit k >= 3 is
+            used as is (capped at the number of matches).
+        inlier_threshold: tau, a pair counts as inlier when ``||R x + t - y|| < tau``
+            (network units; official 0.08, where a training object fits the unit sphere).
+        seed: seeds ``np.random.default_rng``, which picks each round's first FPS point.
+        min_matches_for_sampling: with fewer matches than this, no rounds are run: one
+            SVD, weighted by the confidences, on the ``fallback_matches`` most confident
+            matches (official: 100).
+        fallback_matches: how many of the most confident matches that single SVD uses
+            (official: 128).
+        refit_on_inliers: an improvement over the paper, on by default. The winning
+            transform (or the few-matches SVD) is refined by local optimisation: re-solve
+            the SVD on its inliers (weighted by the confidences when given), recount, and
+            repeat until the inlier set stops changing, at most ``refit_rounds`` times
+            (see :func:`~logdesc_rt.pose.svd.refine_on_inliers`). The paper keeps the best
+            round's transform, fitted to only k pairs, some of them outliers: with 50 %
+            outliers among 500 matches that transform is typically 5-20 degrees off, the
+            refined one within 0.1 degree.
+        refit_rounds: the most re-solves ``refit_on_inliers`` performs (>= 1).
+    """
+
+    iterations: int = 7
+    sample_size: int = 0
+    inlier_threshold: float = 0.08
+    seed: int = 0
+    min_matches_for_sampling: int = 100
+    fallback_matches: int = 128
+    refit_on_inliers: bool = True
+    refit_rounds: int = 5
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise ValueError(f"FsrConfig.iterations must be >= 1, got {self.iterations}")
+        if self.sample_size != 0 and self.sample_size < 3:
+            raise ValueError(
+                f"FsrConfig.sample_size must be 0 (automatic) or >= 3, got {self.sample_size}"
+            )
+        if not 0.0 < self.inlier_threshold < float("inf"):  # also rejects NaN
+            raise ValueError(
+                f"FsrConfig.inlier_threshold must be finite and > 0, got {self.inlier_threshold}"
+            )
+        if self.seed < 0:
+            raise ValueError(f"FsrConfig.seed must be >= 0, got {self.seed}")
+        if self.min_matches_for_sampling < 0:
+            raise ValueError("FsrConfig.min_matches_for_sampling must be >= 0")
+        if self.fallback_matches < 3:
+            raise ValueError(f"FsrConfig.fallback_matches must be >= 3, got {self.fallback_matches}")
+        if self.refit_rounds < 1:
+            raise ValueError(f"FsrConfig.refit_rounds must be >= 1, got {self.refit_rounds}")
+
+    def resolved_sample_size(self, match_count: int) -> int:
+        """k for ``match_count`` matches: the explicit value, or ``max(3, n // N)``; <= n."""
+        size = self.sample_size if self.sample_size else max(3, match_count // self.iterations)
+        return min(size, match_count)
+
+
+@dataclass(frozen=True)
+class RansacConfig(_DictMixin):
+    """Parameters of :func:`~logdesc_rt.pose.ransac`.
+
+    Attributes:
+        inlier_threshold: a correspondence is an inlier when ``||R x + t - y|| < this``
+            (network units, same default as FSR's tau).
+        max_iterations: the most 3-point hypotheses drawn (Open3D's ``max_iteration``).
+        confidence: stop early once this probability of having drawn an all-inlier sample
+            is reached, estimated from the best inlier ratio w: after
+            ``log(1 - confidence) / log(1 - w**3)`` draws. 1.0 disables the early stop.
+        edge_length_similarity: reject a sample unless each of its 3 source edges and the
+            matching target edge satisfy ``shorter >= similarity * longer`` (Open3D's
+            checker, 0.9). 0 disables the check.
+        batch_size: hypotheses drawn and solved together. It changes speed and, through
+            the early stop (checked after each batch), which hypotheses are drawn; results
+            stay reproducible for a given config.
+        seed: seeds ``np.random.default_rng`` for the samples.
+        refit_on_inliers: refine the best hypothesis by re-solving the SVD on its inliers,
+            repeated until they stop changing, at most ``refit_rounds`` times (see
+            :func:`~logdesc_rt.pose.svd.refine_on_inliers`).
+        refit_rounds: the most re-solves of that refinement (>= 1).
+    """
+
+    inlier_threshold: float = 0.08
+    max_iterations: int = 10000
+    confidence: float = 0.999
+    edge_length_similarity: float = 0.9
+    batch_size: int = 256
+    seed: int = 0
+    refit_on_inliers: bool = True
+    refit_rounds: int = 5
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.inlier_threshold < float("inf"):  # also rejects NaN
+            raise ValueError(
+                f"RansacConfig.inlier_threshold must be finite and > 0, got {self.inlier_threshold}"
+            )
+        if self.max_iterations < 1:
+            raise ValueError(f"RansacConfig.max_iterations must be >= 1, got {self.max_iterations}")
+        if not 0.0 < self.confidence <= 1.0:
+            raise ValueError(f"RansacConfig.confidence must be in (0, 1], got {self.confidence}")
+        if not 0.0 <= self.edge_length_similarity < 1.0:
+            raise ValueError(
+                f"RansacConfig.edge_length_similarity must be in [0, 1), got {self.edge_length_similarity}"
+            )
+        if self.batch_size < 1:
+            raise ValueError(f"RansacConfig.batch_size must be >= 1, got {self.batch_size}")
+        if self.seed < 0:
+            raise ValueError(f"RansacConfig.seed must be >= 0, got {self.seed}")
+        if self.refit_rounds < 1:
+            raise ValueError(f"RansacConfig.refit_rounds must be >= 1, got {self.refit_rounds}")
+
+
+SUBSAMPLING_METHODS = ("fps", "voxel")
+POSE_ESTIMATORS = ("auto", "fsr", "svd", "ransac")
+REFINEMENT_METHODS = ("point_to_point", "point_to_plane")
+
+
+@dataclass(frozen=True)
+class SubsamplingConfig(_DictMixin):
+    """How a cloud larger than the working size is reduced for the network.
+
+    Attributes:
+        max_points: working size per cloud; 0 means the model's training size (1024 for the
+            bundled model). Larger clouds are subsampled to it; memory grows with its square.
+        method: "fps" (farthest-point sampling) or "voxel" (a grid sized to keep about
+            ``max_points``, then farthest-point sampling to the exact count).
+    """
+
+    max_points: int = 0
+    method: str = "fps"
+
+    def __post_init__(self) -> None:
+        if self.max_points < 0:
+            raise ValueError(f"SubsamplingConfig.max_points must be >= 0 (0: the model's), got {self.max_points}")
+        if self.method not in SUBSAMPLING_METHODS:
+            raise ValueError(f"SubsamplingConfig.method must be one of {SUBSAMPLING_METHODS}, got {self.method!r}")
+
+
+@dataclass(frozen=True)
+class RefinementConfig(_DictMixin):
+    """ICP on the full clouds after the learned pose (:mod:`logdesc_rt.refinement`).
+
+    Attributes:
+        method: None (no refinement), "point_to_point" or "point_to_plane".
+        max_correspondence_distance: for ICP, fitness and inlier RMSE, in the clouds' unit;
+            None means ``distance_fraction`` x the pair's scale (the larger cloud's radius).
+        distance_fraction: see above (5 %).
+        max_iterations: ICP's iteration limit.
+        tolerance: ICP stops when an update's rotation (radians) plus translation (as a
+            fraction of the correspondence distance) is below this.
+    """
+
+    method: str | None = None
+    max_correspondence_distance: float | None = None
+    distance_fraction: float = 0.05
+    max_iterations: int = 30
+    tolerance: float = 1e-7
+
+    def __post_init__(self) -> None:
+        if self.method is not None and self.method not in REFINEMENT_METHODS:
+            raise ValueError(f"RefinementConfig.method must be None or one of {REFINEMENT_METHODS}, got {self.method!r}")
+        distance = self.max_correspondence_distance
+        if distance is not None and not 0.0 < distance < float("inf"):
+            raise ValueError(f"RefinementConfig.max_correspondence_distance must be None or > 0, got {distance}")
+        if not 0.0 < self.distance_fraction < float("inf"):
+            raise ValueError(f"RefinementConfig.distance_fraction must be > 0, got {self.distance_fraction}")
+        if self.max_iterations < 1:
+            raise ValueError(f"RefinementConfig.max_iterations must be >= 1, got {self.max_iterations}")
+        if not self.tolerance >= 0:
+            raise ValueError(f"RefinementConfig.tolerance must be >= 0, got {self.tolerance}")
+
+
+_RUNTIME_SECTIONS = {
+    "subsampling": SubsamplingConfig,
+    "matching": MatchingConfig,
+    "fsr": FsrConfig,
+    "ransac": RansacConfig,
+    "verification": VerificationConfig,
+    "refinement": RefinementConfig,
+}
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """Every runtime stage's parameters in one place: what ``Registrar`` does with a pair.
+
+    The geometry and normalisation are fixed by the trained model (its manifest) and are not
+    here. Printed by ``logdesc-rt register --json`` under "config"; read from JSON by
+    ``--config FILE`` (a partial dict: missing keys keep their defaults).
+
+    Attributes:
+        subsampling: working size and method (:class:`SubsamplingConfig`).
+        matching: Sinkhorn iterations and match threshold; None uses the model's own.
+        estimator: "auto" (every candidate estimator, verified; the best kept, default),
+            or one of "fsr", "svd", "ransac" (that estimator's pose, still verified).
+        fsr, ransac: the two robust estimators (network units; also the "auto" candidates).
+        verification: hypotheses, scoring and the calibrated success flag.
+        refinement: ICP and the correspondence distance for fitness / inlier RMSE.
+    """
+
+    subsampling: SubsamplingConfig = SubsamplingConfig()
+    matching: MatchingConfig | None = None
+    estimator: str = "auto"
+    fsr: FsrConfig = FsrConfig()
+    ransac: RansacConfig = RansacConfig()
+    verification: VerificationConfig = VerificationConfig()
+    refinement: RefinementConfig = RefinementConfig()
+
+    def __post_init__(self) -> None:
+        if self.estimator not in POSE_ESTIMATORS:
+            raise ValueError(f"RuntimeConfig.estimator must be one of {POSE_ESTIMATORS}, got {self.estimator!r}")
+        for name, kind in _RUNTIME_SECTIONS.items():
+            value = getattr(self, name)
+            if not (isinstance(value, kind) or (name == "matching" and value is None)):
+                raise TypeError(f"RuntimeConfig.{name} must be a {kind.__name__}, got {type(value).__name__}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Nested JSON-friendly dict (``matching`` None when the model's is used)."""
+        values: dict[str, Any] = {"estimator": self.estimator}
+        for name in _RUNTIME_SECTIONS:
+            section = getattr(self, name)
+            values[name] = None if section is None else section.to_dict()
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any], base: "RuntimeConfig | None" = None) -> "RuntimeConfig":
+        """``base`` (default: the defaults) with the given values; sections may be partial.
+
+        Raises:
+            ValueError: an unknown section or key, or an invalid value.
+        """
+        base = cls() if base is None else base
+        if not isinstance(values, dict):
+            raise ValueError(f"RuntimeConfig: expected a JSON object, got {type(values).__name__}")
+        unknown = set(values) - set(_RUNTIME_SECTIONS) - {"estimator"}
+        if unknown:
+            raise ValueError(f"RuntimeConfig: unknown keys {sorted(unknown)}; expected estimator or "
+                             f"{sorted(_RUNTIME_SECTIONS)}")
+        changes: dict[str, Any] = {}
+        if "estimator" in values:
+            changes["estimator"] = values["estimator"]
+        for name, kind in _RUNTIME_SECTIONS.items():
+            if name not in values:
+                continue
+            given = values[name]
+            if given is None:
+                if name != "matching":
+                    raise ValueError(f"RuntimeConfig.{name}: null is allowed only for matching")
+                changes[name] = None
+                continue
+            if not isinstance(given, dict):
+                raise ValueError(f"RuntimeConfig.{name}: expected an object, got {type(given).__name__}")
+            current = getattr(base, name)
+            merged = {**(current.to_dict() if current is not None else {}), **given}
+            changes[name] = kind.from_dict(merged)
+        return dataclasses.replace(base, **changes)
+
+    def with_seed(self, seed: int) -> "RuntimeConfig":
+        """The same config with every random choice (FSR, RANSAC, verification) seeded by ``seed``."""
+        return dataclasses.replace(
+            self,
+            fsr=dataclasses.replace(self.fsr, seed=seed),
+            ransac=dataclasses.replace(self.ransac, seed=seed),
+            verification=dataclasses.replace(self.verification, seed=seed),
+        )

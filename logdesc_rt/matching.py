@@ -11,7 +11,9 @@ all divided by N + M. The returned log-assignment is shifted by log(N + M), so t
 real row (and column) of exp(log_assignment) sums to 1: entry (i, j) reads as the probability
 that source point i matches target point j, and column M as "i has no counterpart".
 
-Two numerically equivalent iterations are implemented: the textbook log-domain one
+The runtime reads its matches with :func:`sinkhorn_matches`: float32 scaling iterations on one
+kernel, no log-assignment matrix. The float64 paths below are the references it is tested
+against. Two numerically equivalent float64 iterations are implemented: the textbook log-domain one
 (logsumexp, :func:`log_domain_sinkhorn`, kept as the reference) and the one used, a
 *stabilised scaling* iteration (Schmitzer 2016): the first row and column updates are done in
 the log domain, which makes the kernel K = exp(Z + f + g) a near-feasible plan (no entry above
@@ -111,6 +113,75 @@ def log_domain_sinkhorn(
         log_u = log_row - logsumexp(augmented + log_v[None, :], axis=1)
         log_v = log_column - logsumexp(augmented + log_u[:, None], axis=0)
     return log_u, log_v
+
+
+def sinkhorn_matches(
+    scores, dustbin_score: float, iterations: int = 50, threshold: float = 0.0
+) -> "Matches":
+    """Mutual best matches of the Sinkhorn assignment, read without any log-assignment matrix.
+
+    The same transport plan as :func:`log_optimal_transport` (and as training's torch
+    Sinkhorn), computed in float32 by scaling iterations on one kernel:
+
+        E_ij = exp(Z_ij - max_j' Z_ij')        (one exp pass; every row's largest entry is 1)
+        P_ij = a_i E_ij b_j,   a = mu / (E b),   b = nu / (E^T a),   b starts at 1,
+
+    which are the log-domain updates u = log a - max_j Z_ij, v = log b written with
+    matrix-vector products. The dustbin row of E is all ones (its entries all equal alpha), so
+    no column sum can underflow, and every row holds its maximum 1, so no row sum can either.
+    Row i's best column is argmax_j E_ij b_j and column j's best row argmax_i a_i E_ij b_j:
+    both read from the kernel in place. If a scaling ever leaves float32's safe range (it has
+    not on any score matrix we have seen), the float64 log-domain path answers instead.
+
+    Args:
+        scores: (N, M) similarity scores (the network's <f_i, h_j> / sqrt(d)).
+        dustbin_score: the learned dustbin score alpha.
+        iterations: Sinkhorn iterations (row then column update each), as in training.
+        threshold: keep matches whose probability exceeds this.
+
+    Returns:
+        :class:`Matches`, as :func:`mutual_matches` of :func:`log_optimal_transport` gives
+        them (up to float32 round-off in near-ties).
+    """
+    if iterations < 1:
+        raise ValueError(f"iterations: {iterations} < 1")
+    augmented = _augmented_scores(scores, dustbin_score).astype(np.float32)
+    rows, columns = augmented.shape[0] - 1, augmented.shape[1] - 1
+    log_row, log_column, _ = _log_marginals(rows, columns)
+    row_marginal = np.exp(log_row).astype(np.float32)
+    column_marginal = np.exp(log_column).astype(np.float32)
+
+    kernel = augmented
+    kernel -= kernel.max(axis=1, keepdims=True)
+    np.exp(kernel, out=kernel)
+    column_scaling = np.ones(columns + 1, dtype=np.float32)
+    for _ in range(iterations):
+        row_scaling = row_marginal / (kernel @ column_scaling)
+        column_scaling = column_marginal / (row_scaling @ kernel)
+    if not (_is_safe(row_scaling) and _is_safe(column_scaling)):
+        return mutual_matches(log_optimal_transport(scores, dustbin_score, iterations), threshold)
+
+    kernel *= column_scaling[None, :]  # E_ij b_j: row-wise proportional to the plan
+    best_column = kernel[:rows].argmax(axis=1)
+    kernel *= row_scaling[:, None]  # a_i E_ij b_j = P_ij, the plan itself
+    best_row = kernel[:, :columns].argmax(axis=0)
+    source_index = np.flatnonzero(best_column < columns)
+    target_index = best_column[source_index]
+    mutual = best_row[target_index] == source_index
+    source_index, target_index = source_index[mutual], target_index[mutual]
+    # The log-assignment is log P + log(N + M): a real row of exp sums to 1.
+    confidence = kernel[source_index, target_index].astype(np.float64) * (rows + columns)
+    keep = confidence > threshold
+    return Matches(
+        source_index=source_index[keep].astype(np.int64),
+        target_index=target_index[keep].astype(np.int64),
+        confidence=confidence[keep],
+    )
+
+
+def _is_safe(scaling: np.ndarray) -> bool:
+    """Finite, positive and far from float32's limits (so products with E stay exact enough)."""
+    return bool(np.isfinite(scaling).all() and (scaling > 1e-30).all() and (scaling < 1e30).all())
 
 
 @dataclass(frozen=True)

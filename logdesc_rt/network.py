@@ -3,8 +3,13 @@
 A model directory holds
 
     manifest.json           file names, SHA-256 checksums, configs, provenance
-    descriptor.onnx         edges (1, N, k, 15), points (1, N, 3)  -> descriptors (1, N, d)
-    matcher.onnx            descriptors and normals of both clouds -> scores (1, N, M)
+    descriptor.onnx         edges (1, N, k, C), points (1, N, 3) [, normals (1, N, 3)]
+                            -> descriptors (1, N, d)
+    matcher.onnx            descriptors and normals [and positions] of both clouds
+                            -> scores (1, N, M)
+
+Which optional inputs a graph takes depends on the model's architecture (the paper's network,
+or v3's invariant one); the runtime feeds each graph by input name.
 
 ``export/to_onnx.py`` writes it. The manifest (mirrored in each ONNX file's metadata) carries
 everything the runtime must reproduce from training: the geometry, normalisation and matching
@@ -169,23 +174,19 @@ class OnnxNetwork:
         self._descriptor_inputs = [i.name for i in self._descriptor.get_inputs()]
         self._matcher_inputs = [i.name for i in self._matcher.get_inputs()]
 
-    def describe(self, edges: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def describe(self, edges: np.ndarray, points: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         """Descriptors of one cloud.
 
         Args:
-            edges: (N, k, 15) float32 edge features (network units).
+            edges: (N, k, C) float32 edge features (network units).
             points: (N, 3) positions, network units.
+            normals: (N, 3) unit normals (read by models whose descriptor uses them, v3).
 
         Returns:
             (N, d) float32 unit-norm descriptors.
         """
-        feeds = dict(
-            zip(
-                self._descriptor_inputs,
-                (edges[None].astype(np.float32, copy=False), points[None].astype(np.float32)),
-            )
-        )
-        return self._descriptor.run(None, feeds)[0][0]
+        arrays = {"edges": edges, "points": points, "normals": normals}
+        return self._descriptor.run(None, self._feeds(self._descriptor_inputs, arrays))[0][0]
 
     def match_scores(
         self,
@@ -193,8 +194,29 @@ class OnnxNetwork:
         target_descriptors: np.ndarray,
         source_normals: np.ndarray,
         target_normals: np.ndarray,
+        source_points: np.ndarray | None = None,
+        target_points: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(N, M) float32 scores <f_i, h_j> / sqrt(d) after the normal-encoder transformer."""
-        arrays = (source_descriptors, target_descriptors, source_normals, target_normals)
-        feeds = {name: a[None].astype(np.float32) for name, a in zip(self._matcher_inputs, arrays)}
-        return self._matcher.run(None, feeds)[0][0]
+        """(N, M) float32 scores <f_i, h_j> / sqrt(d) after the transformer.
+
+        Positions (network units) are read by models whose transformer uses them (v3).
+        """
+        arrays = {
+            "descriptors_source": source_descriptors,
+            "descriptors_target": target_descriptors,
+            "normals_source": source_normals,
+            "normals_target": target_normals,
+            "points_source": source_points,
+            "points_target": target_points,
+        }
+        return self._matcher.run(None, self._feeds(self._matcher_inputs, arrays))[0][0]
+
+    def _feeds(self, input_names: list[str], arrays: dict[str, np.ndarray | None]) -> dict[str, np.ndarray]:
+        """The graph's inputs, by name, as (1, ...) float32 batches of one."""
+        feeds = {}
+        for name in input_names:
+            array = arrays.get(name)
+            if array is None:
+                raise ModelFileError(f"{self.model_dir}: the model needs input {name!r}, which was not given")
+            feeds[name] = np.ascontiguousarray(array, dtype=np.float32)[None]
+        return feeds

@@ -6,16 +6,23 @@
       -> compute_geometry on each cloud (NumPy)
       -> descriptor network on each cloud, matcher network on the pair (onnxruntime)
       -> log-Sinkhorn with the learned dustbin, mutual best matches
-      -> pose from the matches: FSR (default), SVD or RANSAC (network units)
-      -> pose mapped back exactly to the user frame
+      -> candidate poses from the matches: FSR, RANSAC, SVD, top-k (network units), mapped
+         back exactly to the user frame (plus the user's initial guess, if any)
+      -> verification on the full clouds: the best few candidates get a short ICP, each is
+         scored, the best kept; a calibrated confidence and the success flag
       -> optional ICP refinement on the full clouds; fitness / inlier RMSE on the full clouds
+
+Every parameter of these stages is in one :class:`~logdesc_rt.config.RuntimeConfig`.
 
 Every stage's wall time is reported in ``RegistrationResult.timings``.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,20 +33,31 @@ import numpy as np
 from .errors import RegistrationError
 from .geometry import PointGeometry, compute_geometry
 from .io import read_point_cloud
-from .matching import Matches, log_optimal_transport, mutual_matches
+from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
-from .pose import FsrConfig, RansacConfig, evaluate_registration, fsr, ransac, rigid_transform_svd
-from .refinement import ICP_METHODS, IcpResult, icp
+from .config import (
+    POSE_ESTIMATORS,
+    REFINEMENT_METHODS,
+    SUBSAMPLING_METHODS,
+    RefinementConfig,
+    RuntimeConfig,
+    SubsamplingConfig,
+)
+from .pose import evaluate_registration
+from .pose.evaluation import check_rigid_transformation
+from .refinement import IcpResult, icp
+from .verification import CANDIDATE_ESTIMATORS, PoseVerifier, VerificationResult, candidate_poses, estimate_pose
 from .sampling import farthest_point_sampling, voxel_downsample
 from .validation import as_points, check_not_degenerate
 
-POSE_ESTIMATORS = ("fsr", "svd", "ransac")
 MIN_MATCHES = 3  # a rigid transform needs three non-collinear pairs
-SUBSAMPLING_METHODS = ("fps", "voxel")
+ICP_METHODS = REFINEMENT_METHODS
 # Default correspondence distance for fitness / ICP, as a fraction of the pair's scale (the
 # larger cloud's radius): 5 %, i.e. 0.05 network units, ~3 noise sigmas of the training data.
-DEFAULT_DISTANCE_FRACTION = 0.05
+# RefinementConfig holds it; named here for the benchmarks.
+DEFAULT_DISTANCE_FRACTION = RefinementConfig.distance_fraction
+_UNSET = object()  # "not given": refine=None means no refinement, so None cannot mean "unset"
 
 
 @dataclass(frozen=True)
@@ -48,6 +66,11 @@ class RegistrationResult:
 
     Attributes:
         transformation: (4, 4) float64, maps source points into the target frame.
+        success: whether verification judges the pose right, i.e. confidence >= the
+            calibrated threshold (``benchmarks/results/success_calibration.md``: aimed at a
+            rotation error below 5 degrees at least 95 % of the time when True).
+        confidence: calibrated probability, in [0, 1], that the returned pose is right
+            (rotation error < 5 degrees, translation error < 5 % of the larger radius).
         correspondences: (K, 2) int64 rows [source_index, target_index], indices into the
             clouds as given (before any subsampling): the network's mutual matches.
         confidences: (K,) float64 match probabilities from Sinkhorn, in (0, 1].
@@ -56,11 +79,14 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs, user units; NaN when there are none
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
-        pose_estimator: "fsr", "svd" or "ransac".
+        pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k" or
+            "init" (the caller's initial guess).
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
         icp: how ICP ended (iterations, converged, stop reason, its fitness / RMSE), or None
             without refinement.
+        verification: every distinct hypothesis with its features and confidence (best first).
+        config: the runtime configuration used, defaults resolved (working size, matching).
         subsampled: True if either cloud was larger than the working size.
         source_points_used, target_points_used: points the network saw per cloud.
         timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
@@ -81,6 +107,10 @@ class RegistrationResult:
     target_points_used: int
     timings: dict[str, float] = field(default_factory=dict)
     icp: IcpResult | None = None
+    success: bool = False
+    confidence: float = 0.0
+    verification: VerificationResult | None = None
+    config: RuntimeConfig | None = None
 
     @property
     def rotation(self) -> np.ndarray:
@@ -96,6 +126,8 @@ class RegistrationResult:
         """JSON-friendly summary (nested lists), as printed by ``logdesc-rt register --json``."""
         return {
             "transformation": self.transformation.tolist(),
+            "success": self.success,
+            "confidence": self.confidence,
             "fitness": self.fitness,
             "inlier_rmse": _finite_or_none(self.inlier_rmse),
             "max_correspondence_distance": self.max_correspondence_distance,
@@ -105,11 +137,18 @@ class RegistrationResult:
             "pose_estimator": self.pose_estimator,
             "refinement": self.refinement,
             "icp": None if self.icp is None else self.icp.to_dict(),
+            "hypotheses": []
+            if self.verification is None
+            else [
+                {"estimators": list(h.estimators), "confidence": h.confidence, "features": h.features}
+                for h in self.verification.hypotheses
+            ],
             "transformation_before_refinement": self.transformation_before_refinement.tolist(),
             "subsampled": self.subsampled,
             "source_points_used": self.source_points_used,
             "target_points_used": self.target_points_used,
             "timings_s": self.timings,
+            "config": None if self.config is None else self.config.to_dict(),
         }
 
 
@@ -166,7 +205,8 @@ class PairMatches:
         source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
         source_descriptors, target_descriptors: (Ns, d) / (Mt, d) float32 learned descriptors
             (before the matcher's transformer), unit norm.
-        log_assignment: (Ns+1, Mt+1) float64 log-Sinkhorn output, dustbin last.
+        scores: (Ns, Mt) float32 matching scores <f_i, h_j> / sqrt(d) from the matcher network
+            (Sinkhorn with the model's dustbin turns them into the matches).
         matches: mutual matches; indices into the working subsets.
         timings: stage name -> seconds: load, subsample, geometry, descriptors (descriptor
             network, both clouds), matcher (transformer + scores), matching (Sinkhorn + mutual).
@@ -181,7 +221,7 @@ class PairMatches:
     target_network: np.ndarray
     source_descriptors: np.ndarray
     target_descriptors: np.ndarray
-    log_assignment: np.ndarray
+    scores: np.ndarray
     matches: Matches
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -200,32 +240,61 @@ class PairMatches:
             self.target_points
         )
 
-    def pose(self, estimator: str = "fsr", seed: int = 0) -> np.ndarray:
-        """(4, 4) user-frame pose source -> target from the matches.
+    def pose(self, estimator: str = "fsr", seed: int | None = None, config: RuntimeConfig | None = None) -> np.ndarray:
+        """(4, 4) user-frame pose source -> target from the matches, one estimator, unverified.
 
         Args:
-            estimator: "fsr", "svd" (confidence-weighted) or "ransac".
-            seed: seeds FSR / RANSAC sampling.
+            estimator: "fsr", "svd" (confidence-weighted, every match), "ransac" or "top_k"
+                (see :mod:`logdesc_rt.verification`). "auto" needs :meth:`Registrar.register`.
+            seed: seeds FSR / RANSAC sampling; None: the config's seeds (0 by default).
+            config: FSR / RANSAC / top-k parameters; None: the defaults.
 
         Raises:
             RegistrationError: fewer than 3 mutual matches.
         """
-        if estimator not in POSE_ESTIMATORS:
-            raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
+        if estimator not in CANDIDATE_ESTIMATORS:
+            raise ValueError(
+                f"estimator {estimator!r}: expected one of {CANDIDATE_ESTIMATORS} (\"auto\" verifies "
+                "every candidate: use Registrar.register)"
+            )
+        config = _seeded(RuntimeConfig() if config is None else config, seed)
+        self._require_matches()
+        network_pose = estimate_pose(
+            estimator,
+            self.source_network[self.matches.source_index],
+            self.target_network[self.matches.target_index],
+            self.matches.confidence,
+            config.fsr,
+            config.ransac,
+            config.verification.top_k_fraction,
+        )
+        return self.normalization.pose_to_user_frame(network_pose)
+
+    def candidates(self, config: RuntimeConfig | None = None) -> list[tuple[str, np.ndarray]]:
+        """[(estimator, (4, 4) user-frame pose)] of every candidate estimator (unverified).
+
+        Raises:
+            RegistrationError: fewer than 3 mutual matches.
+        """
+        config = RuntimeConfig() if config is None else config
+        self._require_matches()
+        poses = candidate_poses(
+            self.source_network[self.matches.source_index],
+            self.target_network[self.matches.target_index],
+            self.matches.confidence,
+            config.fsr,
+            config.ransac,
+            config.verification.top_k_fraction,
+        )
+        return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
+
+    def _require_matches(self) -> None:
         if len(self.matches) < MIN_MATCHES:
             raise RegistrationError(
                 f"the network found {len(self.matches)} mutual matches, a pose needs at least "
                 f"{MIN_MATCHES}: the clouds may not overlap, or differ too much from the model's "
                 "training data"
             )
-        network_pose = _estimate_pose(
-            self.source_network[self.matches.source_index],
-            self.target_network[self.matches.target_index],
-            self.matches.confidence,
-            estimator,
-            seed,
-        )
-        return self.normalization.pose_to_user_frame(network_pose)
 
 
 class Registrar:
@@ -235,9 +304,14 @@ class Registrar:
         model_dir: directory written by ``export/to_onnx.py``; None = the bundled model.
         threads: onnxruntime threads (None: all cores).
         max_points: working size per cloud; larger clouds are subsampled to it. None = the
-            cloud size used in training (from the model manifest).
-        subsampling: "fps" (farthest-point, default) or "voxel" (grid sized to keep roughly
-            ``max_points``, then farthest-point to the exact count).
+            config's (default: the cloud size used in training, from the model manifest).
+        subsampling: "fps" (farthest-point) or "voxel" (grid sized to keep roughly
+            ``max_points``, then farthest-point to the exact count); None = the config's ("fps").
+        config: every runtime stage's parameters (:class:`~logdesc_rt.config.RuntimeConfig`);
+            None = the defaults. ``max_points`` and ``subsampling`` override its subsampling.
+
+    Attributes:
+        config: the configuration in use, defaults resolved (working size, the model's matching).
     """
 
     def __init__(
@@ -245,17 +319,25 @@ class Registrar:
         model_dir: str | Path | None = None,
         threads: int | None = None,
         max_points: int | None = None,
-        subsampling: str = "fps",
+        subsampling: str | None = None,
+        config: RuntimeConfig | None = None,
     ):
-        if subsampling not in SUBSAMPLING_METHODS:
-            raise ValueError(f"subsampling {subsampling!r}: expected one of {SUBSAMPLING_METHODS}")
+        config = RuntimeConfig() if config is None else config
+        if not isinstance(config, RuntimeConfig):
+            raise TypeError(f"config: expected a RuntimeConfig, got {type(config).__name__}")
+        if max_points is not None or subsampling is not None:
+            config = dataclasses.replace(
+                config,
+                subsampling=SubsamplingConfig(
+                    max_points=config.subsampling.max_points if max_points is None else int(max_points),
+                    method=config.subsampling.method if subsampling is None else subsampling,
+                ),
+            )
         self.network = OnnxNetwork(model_dir, threads=threads)
         self.manifest = self.network.manifest
-        self.max_points = int(max_points or self.manifest.points_per_cloud)
-        min_points = self.manifest.geometry.min_points
-        if self.max_points < min_points:
-            raise ValueError(f"max_points {self.max_points} < {min_points}, the geometry's minimum")
-        self.subsampling = subsampling
+        self.config = self._resolved(config)
+        self.max_points = self.config.subsampling.max_points
+        self.subsampling = self.config.subsampling.method
 
     # -- public API -------------------------------------------------------------------------
 
@@ -264,68 +346,163 @@ class Registrar:
         source,
         target,
         *,
-        estimator: str = "fsr",
-        refine: str | None = None,
+        estimator: str | None = None,
+        refine=_UNSET,
         max_correspondence_distance: float | None = None,
-        seed: int = 0,
+        seed: int | None = None,
+        init=None,
+        config: RuntimeConfig | None = None,
     ) -> RegistrationResult:
-        """Estimate the rigid transform that maps ``source`` onto ``target``.
+        """Estimate the rigid transform that maps ``source`` onto ``target``, and judge it.
 
         Args:
             source, target: (N, 3) / (M, 3) arrays or point-cloud file paths (PLY, PCD,
                 XYZ/TXT/CSV, NPY, OFF), any unit, any placement.
-            estimator: "fsr" (the paper's), "svd" (confidence-weighted, all matches) or "ransac".
-            refine: None, "point_to_point" or "point_to_plane" ICP on the full clouds.
+            estimator: "auto" (default: every candidate estimator's pose is verified on the
+                full clouds and the best kept), or "fsr" (the paper's), "svd"
+                (confidence-weighted, all matches) or "ransac": that estimator's pose, still
+                verified for the success flag.
+            refine: None (default), "point_to_point" or "point_to_plane" ICP on the full clouds.
             max_correspondence_distance: for fitness, inlier RMSE and ICP, user units;
                 default 5 % of the larger cloud's radius.
-            seed: seeds FSR / RANSAC sampling (same input and seed, same output).
+            seed: seeds every random choice (FSR, RANSAC, verification subsets); same input
+                and seed, same output. Default: the config's (0).
+            init: optional (4, 4) initial guess, source -> target (user frame). It joins the
+                candidates and is verified like them; with "auto" it is kept if it scores best.
+            config: this call's :class:`~logdesc_rt.config.RuntimeConfig` (default: the
+                Registrar's); the keyword arguments above override it.
+
+        Returns:
+            :class:`RegistrationResult`; check ``success`` (or ``confidence``) before using it.
 
         Raises:
             InvalidPointCloudError (and subclasses), PointCloudFileError: bad clouds.
-            RegistrationError: fewer than 3 mutual matches (no overlap, or far out of the
-                training distribution).
+            ValueError: bad options, or ``init`` not a rigid (4, 4) transform.
+            RegistrationError: fewer than 3 mutual matches and no ``init`` (no overlap, or far
+                out of the training distribution).
         """
-        if estimator not in POSE_ESTIMATORS:
-            raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
-        if refine is not None and refine not in ICP_METHODS:
-            raise ValueError(f"refine {refine!r}: expected None or one of {ICP_METHODS}")
-        pair = self.match(source, target)
+        config = self.call_config(
+            config,
+            estimator=estimator,
+            refine=refine,
+            max_correspondence_distance=max_correspondence_distance,
+            seed=seed,
+        )
+        initial = None if init is None else check_rigid_transformation(init, name="init")
+        pair = self._with_config(config).match(source, target)
         timings = dict(pair.timings)
         with _timed(timings, "pose"):
-            pose = pair.pose(estimator, seed)
+            candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES or initial is None else []
+            if initial is not None:
+                candidates.append(("init", initial))
+        if config.estimator != "auto" and config.estimator not in dict(candidates):
+            raise RegistrationError(
+                f"estimator {config.estimator!r} found no pose: its matches are degenerate (all on one line)"
+            )
+        if not candidates:
+            raise RegistrationError("no candidate pose: the matches are degenerate (all on one line)")
 
-        distance = (
-            float(max_correspondence_distance)
-            if max_correspondence_distance is not None
-            else DEFAULT_DISTANCE_FRACTION * pair.normalization.scale
-        )
-        if not distance > 0:
-            raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
+        scale = pair.normalization.scale
+        refinement = config.refinement
+        distance = refinement.max_correspondence_distance or refinement.distance_fraction * scale
+        with _timed(timings, "verification"):
+            correspondences = pair.correspondences
+            verifier = PoseVerifier(
+                pair.source_points,
+                pair.target_points,
+                pair.source_points[correspondences[:, 0]],
+                pair.target_points[correspondences[:, 1]],
+                pair.matches.confidence,
+                scale,
+                config.verification,
+            )
+            verification = verifier.verify(candidates)
+        if config.estimator == "auto":
+            chosen = verification.best
+            chosen_estimator = chosen.estimators[0]
+        else:
+            chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
+            chosen_estimator = config.estimator
+        pose = dict(candidates)[chosen_estimator]
+
         refined, icp_result = pose, None
-        if refine is not None:
+        if refinement.method is not None:
             with _timed(timings, "refinement"):
-                icp_result = icp(pair.source_points, pair.target_points, pose, distance, method=refine)
+                icp_result = icp(
+                    pair.source_points,
+                    pair.target_points,
+                    chosen.verified_transformation,
+                    distance,
+                    method=refinement.method,
+                    max_iterations=refinement.max_iterations,
+                    tolerance=refinement.tolerance,
+                )
             refined = icp_result.transformation
+            with _timed(timings, "verification"):
+                confidence = verifier.confidence_at(refined, chosen)
+        else:
+            # The returned pose is the estimator's own: right only if it is close to the
+            # alignment verification found from it.
+            confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
         with _timed(timings, "evaluation"):
             evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
         timings["total"] = sum(timings.values())
 
         return RegistrationResult(
             transformation=refined,
-            correspondences=pair.correspondences,
+            correspondences=correspondences,
             confidences=pair.matches.confidence,
             fitness=evaluation.fitness,
             inlier_rmse=evaluation.inlier_rmse,
             max_correspondence_distance=distance,
-            pose_estimator=estimator,
-            refinement=refine,
+            pose_estimator=chosen_estimator,
+            refinement=refinement.method,
             transformation_before_refinement=pose,
             subsampled=pair.subsampled,
             source_points_used=len(pair.source_index),
             target_points_used=len(pair.target_index),
             timings=timings,
             icp=icp_result,
+            success=bool(confidence >= config.verification.success_threshold),
+            confidence=float(confidence),
+            verification=verification,
+            config=config,
         )
+
+    def call_config(
+        self,
+        config: RuntimeConfig | None = None,
+        *,
+        estimator: str | None = None,
+        refine=_UNSET,
+        max_correspondence_distance: float | None = None,
+        seed: int | None = None,
+    ) -> RuntimeConfig:
+        """The configuration one :meth:`register` call runs with: ``config`` (default: the
+        Registrar's) with the keyword overrides applied and defaults resolved.
+
+        Raises:
+            ValueError: an invalid override (unknown estimator or refinement, distance <= 0).
+        """
+        config = self.config if config is None else config
+        if not isinstance(config, RuntimeConfig):
+            raise TypeError(f"config: expected a RuntimeConfig, got {type(config).__name__}")
+        if estimator is not None:
+            if estimator not in POSE_ESTIMATORS:
+                raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
+            config = dataclasses.replace(config, estimator=estimator)
+        refinement = config.refinement
+        if refine is not _UNSET:
+            if refine is not None and refine not in REFINEMENT_METHODS:
+                raise ValueError(f"refine {refine!r}: expected None or one of {REFINEMENT_METHODS}")
+            refinement = dataclasses.replace(refinement, method=refine)
+        if max_correspondence_distance is not None:
+            distance = float(max_correspondence_distance)
+            if not 0.0 < distance < float("inf"):
+                raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
+            refinement = dataclasses.replace(refinement, max_correspondence_distance=distance)
+        config = dataclasses.replace(config, refinement=refinement)
+        return self._resolved(_seeded(config, seed))
 
     def match(self, source, target) -> PairMatches:
         """The learned pipeline up to the matches: what :meth:`register` builds its pose from.
@@ -338,20 +515,28 @@ class Registrar:
         timings = dict(prepared.timings)
         network_source, network_target = prepared.source_network, prepared.target_network
         with _timed(timings, "descriptors"):
-            source_descriptors = self.network.describe(prepared.source_geometry.edges, network_source)
-            target_descriptors = self.network.describe(prepared.target_geometry.edges, network_target)
+            source_descriptors = self.network.describe(
+                prepared.source_geometry.edges, network_source, prepared.source_geometry.normals
+            )
+            target_descriptors = self.network.describe(
+                prepared.target_geometry.edges, network_target, prepared.target_geometry.normals
+            )
         with _timed(timings, "matcher"):
             scores = self.network.match_scores(
                 source_descriptors,
                 target_descriptors,
                 prepared.source_geometry.normals,
                 prepared.target_geometry.normals,
+                network_source,
+                network_target,
             )
         with _timed(timings, "matching"):
-            log_assignment = log_optimal_transport(
-                scores, self.manifest.dustbin_score, self.manifest.matching.sinkhorn_iterations
+            matches = sinkhorn_matches(
+                scores,
+                self.manifest.dustbin_score,
+                self.config.matching.sinkhorn_iterations,
+                self.config.matching.match_threshold,
             )
-            matches = mutual_matches(log_assignment, self.manifest.matching.match_threshold)
         return PairMatches(
             source_points=prepared.source_points,
             target_points=prepared.target_points,
@@ -362,7 +547,7 @@ class Registrar:
             target_network=network_target,
             source_descriptors=source_descriptors,
             target_descriptors=target_descriptors,
-            log_assignment=log_assignment,
+            scores=scores,
             matches=matches,
             timings=timings,
         )
@@ -387,8 +572,11 @@ class Registrar:
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
         with _timed(timings, "geometry"):
-            source_geometry = compute_geometry(network_source, self.manifest.geometry)
-            target_geometry = compute_geometry(network_target, self.manifest.geometry)
+            # The two clouds concurrently: kNN, eigen-solver and matrix products release the GIL.
+            with ThreadPoolExecutor(max_workers=2) as pool:
+                source_job = pool.submit(compute_geometry, network_source, self.manifest.geometry)
+                target_geometry = compute_geometry(network_target, self.manifest.geometry)
+                source_geometry = source_job.result()
         return PreparedPair(
             source_points=source_points,
             target_points=target_points,
@@ -413,10 +601,33 @@ class Registrar:
         normalization = PairNormalization.fit(cloud[index], cloud[index], self.manifest.normalization)
         network_points = normalization.source_to_network(cloud[index])
         geometry = compute_geometry(network_points, self.manifest.geometry)
-        descriptors = self.network.describe(geometry.edges, network_points)
+        descriptors = self.network.describe(geometry.edges, network_points, geometry.normals)
         return Descriptors(indices=index, descriptors=descriptors, normals=geometry.normals)
 
     # -- helpers ----------------------------------------------------------------------------
+
+    def _resolved(self, config: RuntimeConfig) -> RuntimeConfig:
+        """``config`` with the model's defaults filled in (working size, matching), checked."""
+        max_points = config.subsampling.max_points or self.manifest.points_per_cloud
+        min_points = self.manifest.geometry.min_points
+        if max_points < min_points:
+            raise ValueError(f"max_points {max_points} < {min_points}, the geometry's minimum")
+        return dataclasses.replace(
+            config,
+            subsampling=dataclasses.replace(config.subsampling, max_points=int(max_points)),
+            matching=self.manifest.matching if config.matching is None else config.matching,
+        )
+
+    def _with_config(self, config: RuntimeConfig) -> "Registrar":
+        """This Registrar, or a shallow copy sharing its network when ``config`` changes the
+        subsampling or the matching (the stages before the pose read them from ``self``)."""
+        if config.subsampling == self.config.subsampling and config.matching == self.config.matching:
+            return self
+        other = copy.copy(self)
+        other.config = config
+        other.max_points = config.subsampling.max_points
+        other.subsampling = config.subsampling.method
+        return other
 
     def _load(self, cloud, name: str) -> np.ndarray:
         if isinstance(cloud, (str, Path)):
@@ -441,18 +652,13 @@ class Registrar:
         return np.sort(farthest_point_sampling(points, self.max_points))
 
 
-def _estimate_pose(
-    source: np.ndarray, target: np.ndarray, confidence: np.ndarray, estimator: str, seed: int
-) -> np.ndarray:
-    """(4, 4) network-frame pose from matched points (network units).
-
-    FSR's and RANSAC's default inlier thresholds (0.08) are in network units already.
-    """
-    if estimator == "svd":
-        return rigid_transform_svd(source, target, confidence)
-    if estimator == "ransac":
-        return ransac(source, target, RansacConfig(seed=seed)).transformation
-    return fsr(source, target, confidence, FsrConfig(seed=seed)).transformation
+def _seeded(config: RuntimeConfig, seed: int | None) -> RuntimeConfig:
+    """``config`` with every random choice seeded by ``seed`` (unchanged for None)."""
+    if seed is None:
+        return config
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: {seed!r} must be an integer >= 0")
+    return config.with_seed(int(seed))
 
 
 def _finite_or_none(value: float) -> float | None:

@@ -82,3 +82,60 @@ def test_same_input_same_output():
 def test_bad_scores_raise(scores, dustbin, message):
     with pytest.raises(ValueError, match=message):
         log_optimal_transport(scores, dustbin)
+
+
+# -- the runtime's float32 reader ------------------------------------------------------------
+
+
+def _structured_scores(rng, rows, columns, strength, matched):
+    """Scores with ``matched`` strong true pairs over a noise floor, like a trained network's."""
+    from logdesc_rt.matching import sinkhorn_matches  # noqa: F401  (import check)
+
+    scores = rng.normal(scale=0.2 * strength, size=(rows, columns))
+    source = rng.permutation(rows)[:matched]
+    target = rng.permutation(columns)[:matched]
+    scores[source, target] += strength
+    return scores.astype(np.float32)
+
+
+@pytest.mark.parametrize("strength", [2.0, 20.0, 60.0, 150.0])
+@pytest.mark.parametrize("shape", [(300, 300), (400, 250), (250, 400)])
+def test_float32_sinkhorn_matches_equal_the_float64_reference(shape, strength):
+    from logdesc_rt.matching import sinkhorn_matches
+
+    rng = np.random.default_rng(int(strength) + shape[0])
+    scores = _structured_scores(rng, *shape, strength, matched=min(shape) * 2 // 3)
+    fast = sinkhorn_matches(scores, dustbin_score=1.5, iterations=50)
+    reference = mutual_matches(reference_log_assignment(scores, 1.5, 50))
+    np.testing.assert_array_equal(fast.source_index, reference.source_index)
+    np.testing.assert_array_equal(fast.target_index, reference.target_index)
+    np.testing.assert_allclose(fast.confidence, reference.confidence, rtol=1e-4, atol=1e-6)
+
+
+def test_float32_sinkhorn_equals_trainings_torch_sinkhorn():
+    """Training's torch Sinkhorn and the runtime's reader agree on the same scores."""
+    torch = pytest.importorskip("torch")
+    from logdesc_rt.matching import sinkhorn_matches
+    from training.sinkhorn import log_optimal_transport as torch_sinkhorn
+
+    rng = np.random.default_rng(11)
+    scores = _structured_scores(rng, 200, 180, 25.0, matched=120)
+    torch_log_assignment = torch_sinkhorn(torch.from_numpy(scores.astype(np.float64))[None], torch.tensor(0.8), 50)[0]
+    reference = mutual_matches(torch_log_assignment.numpy())
+    fast = sinkhorn_matches(scores, dustbin_score=0.8, iterations=50)
+    np.testing.assert_array_equal(fast.source_index, reference.source_index)
+    np.testing.assert_array_equal(fast.target_index, reference.target_index)
+    np.testing.assert_allclose(fast.confidence, reference.confidence, rtol=1e-4, atol=1e-6)
+
+
+def test_float32_sinkhorn_threshold_and_empty_overlap():
+    from logdesc_rt.matching import sinkhorn_matches
+
+    rng = np.random.default_rng(2)
+    scores = _structured_scores(rng, 100, 90, 30.0, matched=60)
+    everything = sinkhorn_matches(scores, 1.0, 50)
+    confident = sinkhorn_matches(scores, 1.0, 50, threshold=0.9)
+    assert 0 < len(confident) < len(everything) or (everything.confidence > 0.9).all()
+    assert (confident.confidence > 0.9).all()
+    # Nothing resembles anything: every point goes to the dustbin, no match, no error.
+    assert len(sinkhorn_matches(np.full((50, 40), -30.0, dtype=np.float32), 1.0, 50)) == 0

@@ -66,7 +66,7 @@ def test_match_then_pose_equals_register(registrar, demo_pair):
     assert np.array_equal(pair.correspondences, result.correspondences)
     assert pair.source_descriptors.shape == (len(pair.source_index), registrar.manifest.descriptor_dim)
     assert np.allclose(np.linalg.norm(pair.source_descriptors, axis=1), 1.0, atol=1e-4)
-    assert pair.log_assignment.shape == (len(pair.source_index) + 1, len(pair.target_index) + 1)
+    assert pair.scores.shape == (len(pair.source_index), len(pair.target_index))
     with pytest.raises(ValueError, match="estimator"):
         pair.pose("magic")
 

@@ -15,10 +15,14 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from logdesc_rt.config import _DictMixin
+from logdesc_rt.config import EDGE_CHANNELS, GeometryConfig, _DictMixin
 from logdesc_rt.geometry.edge_features import EDGE_FEATURE_CHANNELS
 
 ROTARY_MODES = ("per_layer", "once")
+# "logdesc": the paper's network (absolute positions, rotary encoding, RoCNet's normal-angle
+# term; training/model.py). "invariant": v3, invariant to rigid motion by construction
+# (training/invariant_model.py); it reads the "invariant" edge layout and PCA normals.
+ARCHITECTURES = ("logdesc", "invariant")
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,12 @@ class ModelConfig(_DictMixin):
     Matching:
         sinkhorn_iterations: log-domain Sinkhorn iterations (50 in the official code).
         dustbin_init: initial value of the learned dustbin score (1.0).
+
+    Architecture:
+        architecture: ``"logdesc"`` (the paper's network) or ``"invariant"`` (v3: invariant
+            edges, distance and normal terms as query / key channels, one logit matrix per
+            cross layer; :mod:`training.invariant_model`). The rotary and normal-angle fields
+            above apply to ``"logdesc"`` only.
     """
 
     edge_channels: int = EDGE_FEATURE_CHANNELS
@@ -84,6 +94,7 @@ class ModelConfig(_DictMixin):
     normal_angle_bins: int = 1024
     sinkhorn_iterations: int = 50
     dustbin_init: float = 1.0
+    architecture: str = "logdesc"
 
     def __post_init__(self) -> None:
         # JSON turns tuples into lists; a frozen dataclass must hold a hashable tuple.
@@ -105,8 +116,15 @@ class ModelConfig(_DictMixin):
                 f"{name}.group_norm_groups={self.group_norm_groups} must divide every entry of "
                 f"descriptor_channels={self.descriptor_channels}"
             )
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(f"{name}.architecture must be one of {ARCHITECTURES}, got {self.architecture!r}")
+        if self.edge_channels != self.geometry().edge_channels:
+            raise ValueError(
+                f"{name}.edge_channels={self.edge_channels}, but the {self.architecture!r} network reads "
+                f"the {self.geometry().edge_layout!r} edge layout of {self.geometry().edge_channels} channels"
+            )
         width = self.attention_width
-        if width % 6:
+        if self.architecture == "logdesc" and width % 6:
             raise ValueError(
                 f"{name}: the descriptor attention width descriptor_channels[-1]={width} must be "
                 "divisible by 6 (3D rotary encoding: one pair of channels per axis per frequency)"
@@ -116,7 +134,7 @@ class ModelConfig(_DictMixin):
                 f"{name}.descriptor_heads={self.descriptor_heads} must divide the attention "
                 f"width {width}"
             )
-        if (width // self.descriptor_heads) % 2:
+        if self.architecture == "logdesc" and (width // self.descriptor_heads) % 2:
             raise ValueError(
                 f"{name}: descriptor head width {width // self.descriptor_heads} must be even "
                 "(a rotary channel pair must not straddle two heads)"
@@ -153,6 +171,13 @@ class ModelConfig(_DictMixin):
     def attention_width(self) -> int:
         """W, the width the descriptor attention runs at (``descriptor_channels[-1]``)."""
         return self.descriptor_channels[-1]
+
+    def geometry(self) -> GeometryConfig:
+        """The per-point geometry this network reads (training builds its pairs with it and
+        stores it in the checkpoint; export copies it into the model's manifest)."""
+        if self.architecture == "invariant":
+            return GeometryConfig(edge_layout="invariant", normals="pca")
+        return GeometryConfig()
 
     def to_dict(self) -> dict[str, Any]:
         values = dataclasses.asdict(self)
@@ -201,6 +226,31 @@ PRESETS: dict[str, ModelConfig] = {
         transformer_layers=3,
         transformer_heads=4,
         normal_angle_bins=256,
+    ),
+    # v3: invariant by construction (training/invariant_model.py), sized for the CPU runtime.
+    "v3": ModelConfig(
+        architecture="invariant",
+        edge_channels=EDGE_CHANNELS["invariant"],
+        descriptor_channels=(32, 64, 96),
+        group_norm_groups=4,
+        descriptor_attention_layers=2,
+        descriptor_heads=4,
+        descriptor_dim=96,
+        transformer_layers=3,
+        transformer_heads=4,
+    ),
+    # Unit tests only: the invariant network's every code path.
+    "tiny_v3": ModelConfig(
+        architecture="invariant",
+        edge_channels=EDGE_CHANNELS["invariant"],
+        descriptor_channels=(16, 24, 24),
+        group_norm_groups=4,
+        descriptor_attention_layers=1,
+        descriptor_heads=2,
+        descriptor_dim=24,
+        transformer_layers=1,
+        transformer_heads=2,
+        sinkhorn_iterations=20,
     ),
     # Unit tests only: every code path, a few thousand parameters.
     "tiny": ModelConfig(

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ModelConfig
+from .invariant_model import InvariantDescriptor, InvariantTransformer
 from .sinkhorn import log_optimal_transport
 
 __all__ = [
@@ -463,17 +464,45 @@ class NormalEncoderTransformer(nn.Module):
 
 
 class LoGDescMatcher(nn.Module):
-    """Descriptor + normal-encoder transformer + scores + Sinkhorn with a learned dustbin."""
+    """Descriptor + normal-encoder transformer + scores + Sinkhorn with a learned dustbin.
+
+    ``config.architecture`` picks the descriptor and transformer: the paper's
+    (:class:`LoGDescDescriptor`, :class:`NormalEncoderTransformer`) or v3's invariant ones
+    (:mod:`training.invariant_model`). Both take the same inputs; each ignores what it does
+    not use (the paper's descriptor reads no normals, its transformer no positions).
+    """
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
-        self.descriptor = LoGDescDescriptor(config)
-        self.transformer = NormalEncoderTransformer(config)
+        if config.architecture == "invariant":
+            self.descriptor = InvariantDescriptor(config)
+            self.transformer = InvariantTransformer(config)
+        else:
+            self.descriptor = LoGDescDescriptor(config)
+            self.transformer = NormalEncoderTransformer(config)
         self.dustbin_score = nn.Parameter(torch.tensor(float(config.dustbin_init)))
 
-    def describe(self, edges: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """(B, N, k, 15) edges, (B, N, 3) positions -> (B, N, d) unit-norm LoGDesc descriptors."""
+    @property
+    def describe_inputs(self) -> tuple[str, ...]:
+        """Names of the inputs :meth:`describe` reads (the exported graph's inputs)."""
+        return ("edges", "points", "normals") if self.config.architecture == "invariant" else ("edges", "points")
+
+    @property
+    def match_inputs(self) -> tuple[str, ...]:
+        """Names of the inputs :meth:`match_scores` reads (the exported graph's inputs)."""
+        names = ("descriptors_source", "descriptors_target", "normals_source", "normals_target")
+        if self.config.architecture == "invariant":
+            names += ("points_source", "points_target")
+        return names
+
+    def describe(self, edges: torch.Tensor, points: torch.Tensor, normals: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, k, C) edges, (B, N, 3) positions, (B, N, 3) unit normals -> (B, N, d)
+        unit-norm descriptors. The paper's descriptor needs no normals."""
+        if self.config.architecture == "invariant":
+            if normals is None:
+                raise ValueError("the invariant descriptor needs the normals")
+            return self.descriptor(edges, points, normals)
         return self.descriptor(edges, points)
 
     def match_scores(
@@ -482,6 +511,8 @@ class LoGDescMatcher(nn.Module):
         desc_tgt: torch.Tensor,
         normals_src: torch.Tensor,
         normals_tgt: torch.Tensor,
+        points_src: torch.Tensor | None = None,
+        points_tgt: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Scores S_ij = <f_i, h_j> / sqrt(d) of the transformer outputs.
 
@@ -490,11 +521,18 @@ class LoGDescMatcher(nn.Module):
             desc_tgt: (B, M, d).
             normals_src: (B, N, 3) unit normals.
             normals_tgt: (B, M, 3).
+            points_src, points_tgt: (B, N, 3) / (B, M, 3) positions, network units (read by
+                the invariant transformer's distance terms only).
 
         Returns:
             (B, N, M) scores.
         """
-        final_src, final_tgt = self.transformer(desc_src, desc_tgt, normals_src, normals_tgt)
+        if self.config.architecture == "invariant":
+            if points_src is None or points_tgt is None:
+                raise ValueError("the invariant transformer needs the positions")
+            final_src, final_tgt = self.transformer(desc_src, desc_tgt, normals_src, normals_tgt, points_src, points_tgt)
+        else:
+            final_src, final_tgt = self.transformer(desc_src, desc_tgt, normals_src, normals_tgt)
         return final_src @ final_tgt.transpose(1, 2) / math.sqrt(self.config.descriptor_dim)
 
     def forward(
@@ -518,9 +556,9 @@ class LoGDescMatcher(nn.Module):
             ``descriptors_src`` (B, N, d) and ``descriptors_tgt`` (B, M, d): the unit-norm
             LoGDesc descriptors before the transformer (for an auxiliary loss).
         """
-        desc_src = self.describe(src_edges, src_points)
-        desc_tgt = self.describe(tgt_edges, tgt_points)
-        scores = self.match_scores(desc_src, desc_tgt, src_normals, tgt_normals)
+        desc_src = self.describe(src_edges, src_points, src_normals)
+        desc_tgt = self.describe(tgt_edges, tgt_points, tgt_normals)
+        scores = self.match_scores(desc_src, desc_tgt, src_normals, tgt_normals, src_points, tgt_points)
         log_assignment = log_optimal_transport(
             scores, self.dustbin_score, self.config.sinkhorn_iterations
         )
@@ -533,28 +571,24 @@ class LoGDescMatcher(nn.Module):
 
 
 class DescribeModule(nn.Module):
-    """Export view of :meth:`LoGDescMatcher.describe`: forward(edges, points) -> descriptors."""
+    """Export view of :meth:`LoGDescMatcher.describe`: forward(*inputs) -> descriptors, the
+    inputs named by ``matcher.describe_inputs``."""
 
     def __init__(self, matcher: LoGDescMatcher) -> None:
         super().__init__()
         self.matcher = matcher
 
-    def forward(self, edges: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        return self.matcher.describe(edges, points)
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.matcher.describe(*inputs)
 
 
 class MatchScoresModule(nn.Module):
-    """Export view of :meth:`LoGDescMatcher.match_scores` (Sinkhorn runs in the runtime)."""
+    """Export view of :meth:`LoGDescMatcher.match_scores` (Sinkhorn runs in the runtime), the
+    inputs named by ``matcher.match_inputs``."""
 
     def __init__(self, matcher: LoGDescMatcher) -> None:
         super().__init__()
         self.matcher = matcher
 
-    def forward(
-        self,
-        desc_src: torch.Tensor,
-        desc_tgt: torch.Tensor,
-        normals_src: torch.Tensor,
-        normals_tgt: torch.Tensor,
-    ) -> torch.Tensor:
-        return self.matcher.match_scores(desc_src, desc_tgt, normals_src, normals_tgt)
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.matcher.match_scores(*inputs)

@@ -228,9 +228,9 @@ def forward(model: LoGDescMatcher, batch: dict, amp: bool) -> dict:
     if not amp:
         return model(*inputs)
     with torch.autocast("cuda", dtype=torch.bfloat16):
-        desc_src = model.describe(inputs[0], inputs[1])
-        desc_tgt = model.describe(inputs[3], inputs[4])
-        scores = model.match_scores(desc_src, desc_tgt, inputs[2], inputs[5])
+        desc_src = model.describe(inputs[0], inputs[1], inputs[2])
+        desc_tgt = model.describe(inputs[3], inputs[4], inputs[5])
+        scores = model.match_scores(desc_src, desc_tgt, inputs[2], inputs[5], inputs[1], inputs[4])
     scores = scores.float()
     return {
         "scores": scores,
@@ -448,7 +448,7 @@ def checkpoint_dict(model, optimizer, scheduler, progress: Progress, args, model
         "best_step": progress.best_step,
         "rng_states": rng_states(),
         "model_config": model_config.to_dict(),
-        "geometry_config": GeometryConfig().to_dict(),
+        "geometry_config": model_config.geometry().to_dict(),
         "normalization_config": NormalizationConfig().to_dict(),
         "matching_config": MatchingConfig().to_dict(),
         "train_args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
@@ -534,8 +534,13 @@ def train(args) -> int:
         early_points_per_cloud=args.early_points_per_cloud,
         early_steps=args.early_points_steps,
     )
-    train_set = PairDataset(shapes.train, args.seed, name="train", any_orientation=args.any_orientation)
-    val_set = PairDataset(shapes.val, args.seed, name="val", any_orientation=args.any_orientation)
+    geometry = model_config.geometry()
+    train_set = PairDataset(
+        shapes.train, args.seed, geometry_config=geometry, name="train", any_orientation=args.any_orientation
+    )
+    val_set = PairDataset(
+        shapes.val, args.seed, geometry_config=geometry, name="val", any_orientation=args.any_orientation
+    )
     sampler = TrainBatchSampler(len(train_set), args.batch_size, schedule, args.seed, start_step=progress.step)
     loader_options = dict(
         num_workers=workers,

@@ -12,17 +12,20 @@ import numpy as np
 from ..config import GeometryConfig
 from ..validation import as_points, check_not_degenerate
 from .edge_features import EDGE_FEATURE_CHANNELS, edge_features
+from .invariant_features import INVARIANT_EDGE_CHANNELS, invariant_edge_features
 from .neighbours import drop_self, knn_excluding_self, nearest_neighbours
 from .normals import umbrella_normals
 from .pca import PcaFeatures, pca_features
 
 __all__ = [
     "EDGE_FEATURE_CHANNELS",
+    "INVARIANT_EDGE_CHANNELS",
     "GeometryConfig",
     "PcaFeatures",
     "PointGeometry",
     "compute_geometry",
     "edge_features",
+    "invariant_edge_features",
     "knn_excluding_self",
     "drop_self",
     "nearest_neighbours",
@@ -39,8 +42,10 @@ class PointGeometry:
         points: (N, 3) float64 positions.
         neighbour_index: (N, k) int64, k = config.umbrella_neighbours nearest other points.
         pca: :class:`PcaFeatures` (anisotropy, planarity, omnivariance, LRF).
-        normals: (N, 3) float64 unit umbrella normals, oriented by the LRF sign rule.
-        edges: (N, k, 15) float32 edge features (layout in :mod:`.edge_features`).
+        normals: (N, 3) float64 unit normals handed to the network (``config.normals``:
+            umbrella normals, or the LRF's normal axis), oriented by the LRF sign rule.
+        edges: (N, k, C) float32 edge features, C = config.edge_channels (layout in
+            :mod:`.edge_features` or :mod:`.invariant_features`, per ``config.edge_layout``).
     """
 
     points: np.ndarray
@@ -71,9 +76,15 @@ def compute_geometry(points, config: GeometryConfig = GeometryConfig()) -> Point
         points, config.pca_radius, config.pca_max_neighbours, config.pca_min_neighbours, neighbours
     )
     neighbour_index = drop_self(neighbours[1], config.umbrella_neighbours)
-    normals = umbrella_normals(points, neighbour_index, pca.lrf, config.umbrella_area_temperature)
+    if config.normals == "pca":
+        normals = pca.lrf[:, :, 2].copy()
+    else:
+        normals = umbrella_normals(points, neighbour_index, pca.lrf, config.umbrella_area_temperature)
     shape_features = np.stack([pca.anisotropy, pca.planarity, pca.omnivariance], axis=1)
-    edges = edge_features(points, shape_features, pca.lrf, normals, neighbour_index)
+    if config.edge_layout == "invariant":
+        edges = invariant_edge_features(points, shape_features, normals, neighbour_index, config.pca_radius)
+    else:
+        edges = edge_features(points, shape_features, pca.lrf, normals, neighbour_index)
     return PointGeometry(
         points=points, neighbour_index=neighbour_index, pca=pca, normals=normals, edges=edges
     )

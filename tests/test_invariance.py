@@ -1,0 +1,159 @@
+"""v3 is invariant to rigid motion by construction: geometry, descriptors and matcher scores.
+
+The v3 network (training/invariant_model.py) is exported with seeded random weights: its
+invariance comes from how it is built, not from training, so an untrained network must
+already give the same descriptors and scores for a cloud however it is turned or moved.
+The same checks fail for the paper's layout and for the shipped v2 model (they are run too,
+so these tests can tell the two apart).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from logdesc_rt import Registrar
+from logdesc_rt.config import GeometryConfig
+from logdesc_rt.geometry import compute_geometry
+
+from .shapes import fibonacci_sphere
+
+INVARIANT_GEOMETRY = GeometryConfig(edge_layout="invariant", normals="pca")
+# Rotations a user's scans really differ by: quarter and half turns about axes and about a
+# skew axis, and random ones; translations up to a kilometre (network units are centred).
+AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+ROTATIONS = {
+    "90 deg about z": Rotation.from_euler("z", 90, degrees=True),
+    "180 deg about x": Rotation.from_euler("x", 180, degrees=True),
+    "90 deg about a skew axis": Rotation.from_rotvec(np.pi / 2 * AXIS),
+    "180 deg about a skew axis": Rotation.from_rotvec(np.pi * AXIS),
+    "random 1": Rotation.random(random_state=1),
+    "random 2": Rotation.random(random_state=2),
+}
+TRANSLATIONS = [np.zeros(3), np.array([12.5, -3.0, 7.0]), np.array([1000.0, 250.0, -40.0])]
+
+
+def _real_shape(shared_data_dir: Path | None) -> np.ndarray:
+    """(1024, 3) a ModelNet10 test chair if the shared data is there, else a bumpy sphere."""
+    if shared_data_dir is not None:
+        h5py = pytest.importorskip("h5py")
+        with h5py.File(shared_data_dir / "modelnet10_hdf5_1024" / "ply_data_test0.h5", "r") as handle:
+            return handle["data"][3].astype(np.float64)
+    sphere = fibonacci_sphere(1024)
+    return sphere * (1.0 + 0.2 * np.sin(4 * sphere[:, :1]) * np.cos(3 * sphere[:, 1:2]))
+
+
+@pytest.fixture(scope="module")
+def shape() -> np.ndarray:
+    shared = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    return _real_shape(shared if shared.is_dir() else None)
+
+
+def _moved(points: np.ndarray, rotation: Rotation, translation: np.ndarray) -> np.ndarray:
+    return rotation.apply(points) + translation
+
+
+# -- geometry --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(ROTATIONS))
+def test_invariant_edges_do_not_change_under_rigid_motion(shape, name):
+    reference = compute_geometry(shape, INVARIANT_GEOMETRY)
+    moved = compute_geometry(_moved(shape, ROTATIONS[name], TRANSLATIONS[1]), INVARIANT_GEOMETRY)
+    assert np.array_equal(reference.neighbour_index, moved.neighbour_index)
+    assert np.abs(reference.edges - moved.edges).max() < 1e-5
+
+
+def test_paper_edges_do_change_under_rotation(shape):
+    """The paper's layout holds absolute coordinates: the same check fails for it."""
+    reference = compute_geometry(shape, GeometryConfig())
+    moved = compute_geometry(ROTATIONS["90 deg about z"].apply(shape), GeometryConfig())
+    assert np.abs(reference.edges - moved.edges).max() > 0.1
+
+
+def test_invariant_edges_do_not_depend_on_normal_signs(shape):
+    from logdesc_rt.geometry import invariant_edge_features
+
+    geometry = compute_geometry(shape, INVARIANT_GEOMETRY)
+    shape_features = np.stack([geometry.pca.anisotropy, geometry.pca.planarity, geometry.pca.omnivariance], axis=1)
+    flips = np.where(np.random.default_rng(0).random(len(shape)) < 0.5, -1.0, 1.0)
+    flipped = invariant_edge_features(
+        geometry.points, shape_features, geometry.normals * flips[:, None], geometry.neighbour_index,
+        INVARIANT_GEOMETRY.pca_radius,
+    )
+    assert np.abs(flipped - geometry.edges).max() < 1e-6
+
+
+# -- the exported network --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def v3_registrar(tmp_path_factory) -> Registrar:
+    """A Registrar on the v3 preset exported with seeded random weights."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from export.to_onnx import main as export_main
+    from training.config import ModelConfig
+    from training.model import LoGDescMatcher
+
+    torch.manual_seed(0)
+    config = ModelConfig.preset("v3")
+    folder = tmp_path_factory.mktemp("v3")
+    torch.save(
+        {
+            "model": LoGDescMatcher(config).state_dict(),
+            "model_config": config.to_dict(),
+            "geometry_config": config.geometry().to_dict(),
+            "train_args": {"points_per_cloud": 1024},
+            "step": 0,
+        },
+        folder / "v3.pt",
+    )
+    assert export_main([str(folder / "v3.pt"), "--out", str(folder / "model")]) == 0
+    return Registrar(folder / "model")
+
+
+@pytest.mark.parametrize("translation", range(len(TRANSLATIONS)))
+@pytest.mark.parametrize("name", list(ROTATIONS))
+def test_v3_descriptors_are_invariant(v3_registrar, shape, name, translation):
+    reference = v3_registrar.describe(shape)
+    moved = v3_registrar.describe(_moved(shape, ROTATIONS[name], TRANSLATIONS[translation]))
+    assert np.array_equal(reference.indices, moved.indices)
+    difference = np.abs(reference.descriptors - moved.descriptors).max()
+    assert difference <= 1e-4, f"{name}, translation {TRANSLATIONS[translation]}: max |difference| {difference:.2e}"
+
+
+def test_v3_scores_are_invariant_to_either_cloud_moving(v3_registrar, shape):
+    rng = np.random.default_rng(3)
+    source = shape[rng.permutation(len(shape))[:900]]
+    target = ROTATIONS["random 1"].apply(shape[rng.permutation(len(shape))[:800]])
+    reference = v3_registrar.match(source, target).scores
+    for source_motion, target_motion in (("180 deg about x", "90 deg about z"), ("random 2", "180 deg about a skew axis")):
+        moved = v3_registrar.match(
+            _moved(source, ROTATIONS[source_motion], TRANSLATIONS[2]),
+            _moved(target, ROTATIONS[target_motion], TRANSLATIONS[1]),
+        ).scores
+        scale = np.abs(reference).max()
+        assert np.abs(moved - reference).max() <= 1e-4 * max(scale, 1.0)
+
+
+def test_the_shipped_v2_descriptors_are_not_invariant(shape):
+    """What the invariance tests guard against: the paper's network changes with rotation."""
+    registrar = Registrar()
+    if registrar.manifest.model_config.get("architecture", "logdesc") != "logdesc":
+        pytest.skip("the bundled model is not the paper's architecture")
+    reference = registrar.describe(shape).descriptors
+    moved = registrar.describe(ROTATIONS["90 deg about z"].apply(shape)).descriptors
+    assert np.abs(reference - moved).max() > 0.1
+
+
+def test_v3_graphs_hold_no_pairwise_index_or_gather(v3_registrar):
+    """No N x N gather or integer index anywhere: the geometric terms are query / key channels."""
+    onnx = pytest.importorskip("onnx")
+    for name in ("descriptor.onnx", "matcher.onnx"):
+        graph = onnx.load(str(v3_registrar.network.model_dir / name)).graph
+        operators = {node.op_type for node in graph.node}
+        assert not operators & {"GatherElements", "GatherND", "Floor", "Acos"}, (name, operators)

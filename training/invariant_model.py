@@ -1,0 +1,287 @@
+"""The v3 network: LoGDesc made invariant to rigid motion by construction, in matmul form.
+
+The paper's network sees absolute coordinates twice: in the edge features and in the rotary
+position encoding of the descriptor's attention. Its outputs therefore change when a cloud
+turns, and training on rotated pairs only teaches it to tolerate that approximately. Here the
+inputs are the invariant edges of :mod:`logdesc_rt.geometry.invariant_features`, and every
+attention layer meets geometry only through quantities that do not change under rotation and
+translation, evaluated as extra query / key channels, so that they are part of the one
+Q K^T product (no N x N x d tensor, no N x N gather or integer index in the exported graph):
+
+- **distance bias** (:func:`distance_channels`): per head, -w_h |x_i - x_j|^2 with a learned
+  w_h > 0. With q = [-|x_i|^2, -1, 2 x_i] and k = [1, |x_j|^2, x_j] (5 channels),
+  q . k = -|x_i - x_j|^2 exactly; each head learns its own locality (ALiBi-like, in 3D).
+- **normal term** (:func:`normal_channels`): a query-dependent even polynomial
+  a2_h(i) (n_i . n_j)^2 + a4_h(i) (n_i . n_j)^4. (n_i . n_j)^p is the inner product of the
+  degree-p monomial vectors of n_i and n_j (weighted by the square roots of the multinomial
+  coefficients): 6 + 15 channels. Even powers make the term independent of the normals'
+  signs, which no local rule can fix reliably. This replaces RoCNet's sinusoidal
+  angle embedding (the paper's normal-encoder term), which needed an N x N angle lookup.
+- **cross attention with one logit matrix** (:class:`BidirectionalCrossLayer`): source and
+  target share the query / key projection, so the source -> target logits are the transpose of
+  the target -> source ones and are computed once (LightGlue's bidirectional cross-attention).
+
+Shapes are batch-first float32: B pairs, N / M points, k neighbours, C edge channels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import ModelConfig
+
+DISTANCE_CHANNELS = 5
+# Monomials n^alpha with |alpha| = 2 and 4 and their multinomial coefficients p! / alpha!.
+_EXPONENTS_2 = [(a, b, 2 - a - b) for a in range(3) for b in range(3 - a)]
+_EXPONENTS_4 = [(a, b, 4 - a - b) for a in range(5) for b in range(5 - a)]
+NORMAL_CHANNELS = len(_EXPONENTS_2) + len(_EXPONENTS_4)  # 6 + 15
+
+
+def _monomial_weights(exponents: list[tuple[int, int, int]], power: int) -> torch.Tensor:
+    return torch.tensor(
+        [math.sqrt(math.factorial(power) / math.prod(math.factorial(e) for e in alpha)) for alpha in exponents]
+    )
+
+
+def distance_channels(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Query and key channels whose inner product is minus the squared distance.
+
+    Args:
+        points: (B, N, 3) positions, network units (centred, so |x| ~ 1 and the expansion
+            loses nothing in float32).
+
+    Returns:
+        query_part, key_part: each (B, N, 5), with query_part[i] . key_part[j] =
+        -|x_i - x_j|^2.
+    """
+    squared = (points * points).sum(dim=-1, keepdim=True)
+    ones = torch.ones_like(squared)
+    query_part = torch.cat((-squared, -ones, 2.0 * points), dim=-1)
+    key_part = torch.cat((ones, squared, points), dim=-1)
+    return query_part, key_part
+
+
+def normal_channels(normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted monomials of the normals: (n_i . n_j)^p as an inner product, p = 2 and 4.
+
+    Args:
+        normals: (B, N, 3) unit normals (any signs).
+
+    Returns:
+        degree2: (B, N, 6) with degree2[i] . degree2[j] = (n_i . n_j)^2.
+        degree4: (B, N, 15) with degree4[i] . degree4[j] = (n_i . n_j)^4.
+    """
+
+    def monomials(exponents: list[tuple[int, int, int]], power: int) -> torch.Tensor:
+        weights = _monomial_weights(exponents, power).to(normals)
+        columns = [
+            normals[..., 0] ** a * normals[..., 1] ** b * normals[..., 2] ** c for a, b, c in exponents
+        ]
+        return torch.stack(columns, dim=-1) * weights
+
+    return monomials(_EXPONENTS_2, 2), monomials(_EXPONENTS_4, 4)
+
+
+def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
+    """(B, N, C) -> (B, H, N, C / H)."""
+    return x.reshape(x.shape[0], x.shape[1], heads, -1).transpose(1, 2)
+
+
+def _merge_heads(x: torch.Tensor) -> torch.Tensor:
+    """(B, H, N, C / H) -> (B, N, C)."""
+    return x.transpose(1, 2).reshape(x.shape[0], x.shape[2], -1)
+
+
+class _Update(nn.Module):
+    """LoGDesc's residual update: x <- x + LayerNorm(MLP([x, LayerNorm(merge(message))]))."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.merge = nn.Linear(width, width, bias=False)
+        self.message_norm = nn.LayerNorm(width)
+        self.mlp = nn.Sequential(nn.Linear(2 * width, 2 * width), nn.ReLU(), nn.Linear(2 * width, width))
+        self.update_norm = nn.LayerNorm(width)
+
+    def forward(self, x: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
+        """x: (B, N, w); attended: (B, H, N, w / H) -> (B, N, w)."""
+        message = self.message_norm(self.merge(_merge_heads(attended)))
+        return x + self.update_norm(self.mlp(torch.cat((x, message), dim=-1)))
+
+
+class GeometricSelfLayer(nn.Module):
+    """Self-attention whose logits add an invariant distance bias and normal term.
+
+        logit_ij^h = q_i^h . k_j^h / sqrt(d_h) - w_h |x_i - x_j|^2
+                     + a2_h(i) (n_i . n_j)^2 + a4_h(i) (n_i . n_j)^4
+
+    all as one product of (d_h + 5 + 21)-channel queries and keys per head.
+
+    Args:
+        width: feature width w.
+        heads: attention heads H (w % H == 0).
+        locality_range: the heads' initial w_h are spread log-uniformly so that
+            1 / sqrt(w_h) (the distance at which the bias reaches -1) spans this range, in
+            network units; training moves them.
+    """
+
+    def __init__(self, width: int, heads: int, locality_range: tuple[float, float] = (0.05, 1.0)) -> None:
+        super().__init__()
+        if width % heads:
+            raise ValueError(f"width {width} not divisible by heads {heads}")
+        self.heads, self.head_dim = heads, width // heads
+        self.query = nn.Linear(width, width, bias=False)
+        self.key = nn.Linear(width, width, bias=False)
+        self.value = nn.Linear(width, width, bias=False)
+        reach = torch.logspace(math.log10(locality_range[0]), math.log10(locality_range[1]), heads)
+        self.log_locality = nn.Parameter(-2.0 * torch.log(reach))  # w_h = exp(.) = 1 / reach^2
+        self.normal_coefficients = nn.Linear(width, 2 * heads)  # a2_h(i), a4_h(i)
+        nn.init.zeros_(self.normal_coefficients.weight)
+        nn.init.zeros_(self.normal_coefficients.bias)
+        self.update = _Update(width)
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        distance_parts: tuple[torch.Tensor, torch.Tensor],
+        normal_parts: tuple[torch.Tensor, torch.Tensor],
+    ) -> torch.Tensor:
+        """Update ``x`` (B, N, w) by attending to itself.
+
+        Args:
+            distance_parts: from :func:`distance_channels`, each (B, N, 5).
+            normal_parts: from :func:`normal_channels`, (B, N, 6) and (B, N, 15).
+        """
+        batch, count, heads = x.shape[0], x.shape[1], self.heads
+        query = _split_heads(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))
+        key = _split_heads(self.key(x), heads)
+        value = _split_heads(self.value(x), heads)
+
+        distance_query, distance_key = distance_parts  # (B, N, 5)
+        locality = torch.exp(self.log_locality).reshape(1, heads, 1, 1)
+        degree2, degree4 = normal_parts
+        coefficients = self.normal_coefficients(x).reshape(batch, count, heads, 2).transpose(1, 2)
+        query = torch.cat(
+            (
+                query,
+                locality * distance_query.unsqueeze(1),
+                coefficients[..., 0:1] * degree2.unsqueeze(1),
+                coefficients[..., 1:2] * degree4.unsqueeze(1),
+            ),
+            dim=-1,
+        )
+        geometry_key = torch.cat((distance_key, degree2, degree4), dim=-1).unsqueeze(1)
+        key = torch.cat((key, geometry_key.expand(batch, heads, count, -1)), dim=-1)
+        attended = F.scaled_dot_product_attention(query, key, value, scale=1.0)
+        return self.update(x, attended)
+
+
+class BidirectionalCrossLayer(nn.Module):
+    """Cross-attention both ways from one logit matrix (shared query / key projection).
+
+        S = (P x_src)(P x_tgt)^T / sqrt(d_h) per head, (B, H, N, M)
+        src <- src + update(softmax_rows(S) V x_tgt),  tgt <- tgt + update(softmax_cols(S)^T V x_src)
+
+    One update module serves both clouds, as the paper shares a layer's weights between them.
+    """
+
+    def __init__(self, width: int, heads: int) -> None:
+        super().__init__()
+        if width % heads:
+            raise ValueError(f"width {width} not divisible by heads {heads}")
+        self.heads, self.head_dim = heads, width // heads
+        self.query_key = nn.Linear(width, width, bias=False)
+        self.value = nn.Linear(width, width, bias=False)
+        self.update = _Update(width)
+
+    def forward(self, source: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, N, w), (B, M, w) -> updated (B, N, w), (B, M, w)."""
+        heads = self.heads
+        scale = 1.0 / math.sqrt(self.head_dim)
+        source_qk = _split_heads(self.query_key(source), heads)
+        target_qk = _split_heads(self.query_key(target), heads)
+        logits = (source_qk * scale) @ target_qk.transpose(2, 3)  # (B, H, N, M)
+        source_message = torch.softmax(logits, dim=3) @ _split_heads(self.value(target), heads)
+        target_message = torch.softmax(logits.transpose(2, 3), dim=3) @ _split_heads(self.value(source), heads)
+        return self.update(source, source_message), self.update(target, target_message)
+
+
+class InvariantDescriptor(nn.Module):
+    """(B, N, k, C) invariant edges -> 1x1 convolutions + GroupNorm + ReLU -> max over k
+    -> geometric self-attention layers -> projection -> L2 normalisation, (B, N, d)."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        local: list[nn.Module] = []
+        channels_in = config.edge_channels
+        for channels_out in config.descriptor_channels:
+            local += [
+                nn.Conv2d(channels_in, channels_out, kernel_size=1, bias=False),
+                nn.GroupNorm(config.group_norm_groups, channels_out),
+                nn.ReLU(),
+            ]
+            channels_in = channels_out
+        self.local = nn.Sequential(*local)
+        width = config.attention_width
+        self.layers = nn.ModuleList(
+            GeometricSelfLayer(width, config.descriptor_heads, locality_range=(0.05, 0.5))
+            for _ in range(config.descriptor_attention_layers)
+        )
+        self.projection = nn.Linear(width, config.descriptor_dim)
+
+    def forward(self, edges: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """edges (B, N, k, C), points (B, N, 3), normals (B, N, 3) -> (B, N, d) unit-norm descriptors."""
+        features = self.local(edges.permute(0, 3, 1, 2)).amax(dim=3).transpose(1, 2)  # (B, N, W)
+        distance_parts, normal_parts = geometric_parts(points, normals)
+        for layer in self.layers:
+            features = layer(features, distance_parts, normal_parts)
+        return F.normalize(self.projection(features), dim=-1)
+
+
+class InvariantTransformer(nn.Module):
+    """``transformer_layers`` pairs of (geometric self, bidirectional cross) layers at width d,
+    then a final linear d -> d (the normal-encoder transformer's role, made invariant)."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        dim, heads = config.descriptor_dim, config.transformer_heads
+        self.self_layers = nn.ModuleList(
+            GeometricSelfLayer(dim, heads, locality_range=(0.1, 2.0)) for _ in range(config.transformer_layers)
+        )
+        self.cross_layers = nn.ModuleList(
+            BidirectionalCrossLayer(dim, heads) for _ in range(config.transformer_layers)
+        )
+        self.projection = nn.Linear(dim, dim)
+
+    def forward(
+        self,
+        desc_src: torch.Tensor,
+        desc_tgt: torch.Tensor,
+        normals_src: torch.Tensor,
+        normals_tgt: torch.Tensor,
+        points_src: torch.Tensor,
+        points_tgt: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, N, d), (B, M, d) descriptors with their normals and positions -> (B, N, d), (B, M, d)."""
+        parts_src = geometric_parts(points_src, normals_src)
+        parts_tgt = geometric_parts(points_tgt, normals_tgt)
+        src, tgt = desc_src, desc_tgt
+        for self_layer, cross_layer in zip(self.self_layers, self.cross_layers):
+            src = self_layer(src, *parts_src)
+            tgt = self_layer(tgt, *parts_tgt)
+            src, tgt = cross_layer(src, tgt)
+        return self.projection(src), self.projection(tgt)
+
+
+def geometric_parts(points: torch.Tensor, normals: torch.Tensor):
+    """The distance and normal channels of one cloud, computed once for all its layers.
+
+    Inputs are geometry, not learned: no gradient flows into them, and they stay float32 under
+    autocast (the distance expansion cancels large terms).
+    """
+    with torch.autocast(device_type=points.device.type, enabled=False):
+        points, normals = points.detach().float(), normals.detach().float()
+        return distance_channels(points), normal_channels(normals)
