@@ -38,6 +38,18 @@ def score(metrics: dict) -> tuple[float, float]:
     return (metrics["success"], -metrics["l_r_median"])
 
 
+def choose(rows: dict[str, dict]) -> FpfhParameters:
+    """The parameters the sweep's measurements select (``rows``: label -> summary with
+    "method", "value", "success", "l_r_median"): one voxel for both FPFH estimators, the one
+    whose better estimator scores best, and the best ICP distance."""
+
+    def best(method: str) -> dict:
+        return max((row for row in rows.values() if row["method"] == method), key=score)
+
+    best_voxel = max((best("fpfh_ransac"), best("fpfh_fgr")), key=score)["value"]
+    return FpfhParameters(voxel=best_voxel, icp_distance=best("icp_point_to_plane")["value"])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=20, help="validation pairs per protocol")
@@ -58,13 +70,9 @@ def main(argv=None) -> int:
             label = f"{method} v={value}" if kind == "fpfh" else f"{method} d={value}"
             rows[label] = {"kind": kind, "value": value, "method": method, **summarize(method_records)}
 
-    def best(method: str) -> dict:
-        return max((row for row in rows.values() if row["method"] == method), key=score)
-
-    # One voxel for both FPFH estimators: the one whose better estimator scores best.
-    best_voxel = max((best("fpfh_ransac"), best("fpfh_fgr")), key=score)["value"]
-    best_icp = best("icp_point_to_plane")["value"]
-    chosen = dataclasses.asdict(FpfhParameters(voxel=best_voxel, icp_distance=best_icp))
+    parameters = choose(rows)
+    best_voxel, best_icp = parameters.voxel, parameters.icp_distance
+    chosen = dataclasses.asdict(parameters)
 
     from common import markdown_table
 

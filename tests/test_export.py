@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -12,7 +13,7 @@ pytest.importorskip("onnx")
 from logdesc_rt import Registrar  # noqa: E402
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig  # noqa: E402
 from logdesc_rt.demo import make_demo_pair  # noqa: E402
-from logdesc_rt.errors import RegistrationError  # noqa: E402
+from logdesc_rt.matching import sinkhorn_matches  # noqa: E402
 from logdesc_rt.network import OnnxNetwork, bundled_model_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,11 +60,27 @@ def test_export_script_writes_a_loadable_checked_model(tmp_path):
     assert export_main([str(checkpoint), "--out", str(out)]) == 0
     registrar = Registrar(out)
     assert registrar.manifest.descriptor_dim == config.descriptor_dim
+    # The runtime on the exported files computes what torch computes on the same inputs, and
+    # its matches are the Sinkhorn reading of those scores with the exported dustbin.
     pair = make_demo_pair()
-    # Untrained weights: the pipeline runs end to end; with too few matches it says so.
-    try:
-        result = registrar.register(pair.source, pair.target)
-    except RegistrationError as error:
-        assert "mutual matches" in str(error)
-    else:
-        assert result.transformation.shape == (4, 4)
+    matched = registrar.match(pair.source, pair.target)
+    prepared = registrar.prepare(pair.source, pair.target)
+    model = LoGDescMatcher(config)
+    model.load_state_dict(torch.load(checkpoint)["model"])
+    model.eval()
+    as_tensor = lambda array: torch.from_numpy(np.asarray(array, dtype=np.float32))[None]  # noqa: E731
+    with torch.no_grad():
+        descriptors = [
+            model.describe(as_tensor(geometry.edges), as_tensor(points))
+            for geometry, points in ((prepared.source_geometry, prepared.source_network),
+                                     (prepared.target_geometry, prepared.target_network))
+        ]
+        scores = model.match_scores(
+            *descriptors, as_tensor(prepared.source_geometry.normals), as_tensor(prepared.target_geometry.normals)
+        )[0].numpy()
+    np.testing.assert_allclose(matched.source_descriptors, descriptors[0][0].numpy(), atol=1e-4)
+    np.testing.assert_allclose(matched.scores, scores, atol=1e-4 * max(1.0, np.abs(scores).max()))
+    assert registrar.manifest.dustbin_score == pytest.approx(float(model.dustbin_score))
+    expected = sinkhorn_matches(matched.scores, registrar.manifest.dustbin_score, config.sinkhorn_iterations)
+    np.testing.assert_array_equal(matched.matches.source_index, expected.source_index)
+    np.testing.assert_array_equal(matched.matches.target_index, expected.target_index)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 
 import numpy as np
 import pytest
@@ -45,8 +44,8 @@ K = 8
 GEOMETRY = GeometryConfig(umbrella_neighbours=K, pca_max_neighbours=32)
 
 
-def _random_inputs(generator: torch.Generator, batch: int, count: int, k: int = K):
-    edges = torch.randn(batch, count, k, 15, generator=generator)
+def _random_inputs(generator: torch.Generator, batch: int, count: int, k: int = K, channels: int = 15):
+    edges = torch.randn(batch, count, k, channels, generator=generator)
     points = torch.randn(batch, count, 3, generator=generator)
     normals = F.normalize(torch.randn(batch, count, 3, generator=generator), dim=-1)
     return edges, points, normals
@@ -130,12 +129,22 @@ def test_forward_shapes_and_unit_descriptors(pair, rotary_mode):
     assert all(torch.isfinite(value).all() for value in out.values())
 
 
-def test_batch_of_different_clouds_with_unequal_counts():
+@pytest.mark.parametrize("preset", ["tiny", "tiny_v3"])
+def test_a_batch_computes_what_each_pair_computes_alone(preset):
+    """Batching never mixes pairs (GroupNorm, attention and Sinkhorn are per pair)."""
     generator = torch.Generator().manual_seed(1)
-    model = LoGDescMatcher(TINY)
-    out = model(*_random_inputs(generator, 3, 40), *_random_inputs(generator, 3, 33))
-    assert out["scores"].shape == (3, 40, 33)
-    assert out["log_assignment"].shape == (3, 41, 34)
+    config = PRESETS[preset]
+    model = LoGDescMatcher(config).eval()
+    source = _random_inputs(generator, 3, 40, channels=config.edge_channels)
+    target = _random_inputs(generator, 3, 33, channels=config.edge_channels)
+    with torch.no_grad():
+        batched = model(*source, *target)
+        assert batched["scores"].shape == (3, 40, 33)
+        assert batched["log_assignment"].shape == (3, 41, 34)
+        for row in range(3):
+            alone = model(*(t[row : row + 1] for t in source), *(t[row : row + 1] for t in target))
+            for key in ("scores", "log_assignment", "descriptors_src"):
+                torch.testing.assert_close(batched[key][row], alone[key][0], atol=2e-5, rtol=1e-5)
 
 
 def test_rotary_encoding_is_relative_and_norm_preserving():
@@ -257,16 +266,15 @@ def test_no_tensor_of_n_by_n_by_d_elements():
     assert monitor.largest >= limit
 
 
-def test_transformer_runs_on_2048_points_quickly():
+def test_transformer_runs_on_2048_points():
+    """2048 points per cloud, twice the working size (its speed: benchmarks/latency.py)."""
     generator = torch.Generator().manual_seed(6)
     count = 2048
     transformer = NormalEncoderTransformer(TINY).eval()
     desc = F.normalize(torch.randn(2, 1, count, TINY.descriptor_dim, generator=generator), dim=-1)
     normals = F.normalize(torch.randn(2, 1, count, 3, generator=generator), dim=-1)
-    start = time.perf_counter()
     with torch.no_grad():
         out_src, out_tgt = transformer(desc[0], desc[1], normals[0], normals[1])
-    assert time.perf_counter() - start < 30.0
     assert out_src.shape == out_tgt.shape == (1, count, TINY.descriptor_dim)
     assert torch.isfinite(out_src).all() and torch.isfinite(out_tgt).all()
 
