@@ -121,8 +121,9 @@ STAGE_COLUMNS = (
     ("geometry", "geometry"),
     ("descriptors", "descriptor net"),
     ("matcher", "matcher net"),
-    ("matching", "Sinkhorn + mutual"),
+    ("matching", "Sinkhorn + mutual (float32)"),
     ("pose", "pose (FSR)"),
+    ("verification", "verification"),
     ("other", "other"),
     ("total", "end to end"),
     ("wall", "wall"),
@@ -280,12 +281,13 @@ def network_inputs(registrar, source: np.ndarray, target: np.ndarray) -> dict[st
     return inputs
 
 
-def save_inputs(path: Path, pairs: dict[int, dict]) -> None:
+def save_inputs(path: Path, pairs: dict[int, dict], model_dir: Path | None = None) -> None:
     """Write every pair and its network inputs into the one .npz all children read."""
     from logdesc_rt import Registrar  # as in the children: the parent stays light until needed
 
     # One registrar (one model load) for every size: its working size is the largest N.
-    registrar = Registrar(max_points=max(len(pair[name]) for pair in pairs.values() for name in ("source", "target")))
+    largest = max(len(pair[name]) for pair in pairs.values() for name in ("source", "target"))
+    registrar = Registrar(model_dir, max_points=largest)
     arrays = {}
     for size, pair in pairs.items():
         arrays.update({f"{name}_{size}": value for name, value in pair.items()})
@@ -310,7 +312,7 @@ def worker_baseline_onnxruntime(args) -> dict:
     """Import the runtime and load the model (both sessions); run nothing."""
     from logdesc_rt import Registrar
 
-    Registrar(threads=args.threads, max_points=args.size)
+    Registrar(args.model_dir, threads=args.threads, max_points=args.size)
     return {"peak": peak_rss_kib()}
 
 
@@ -321,7 +323,7 @@ def worker_onnxruntime(args) -> dict:
 
     data = load_inputs(args.inputs, args.size)
     start = time.perf_counter()
-    registrar = Registrar(threads=args.threads, max_points=args.size)
+    registrar = Registrar(args.model_dir, threads=args.threads, max_points=args.size)
     startup = time.perf_counter() - start
 
     start = time.perf_counter()  # the warm-up call, timed as the first call
@@ -356,8 +358,9 @@ def _time_networks(describe: Callable, match: Callable, data: dict, repeats: int
     """Time ``describe`` on both clouds and ``match`` on the pair, per call.
 
     Args:
-        describe: (edges, points) -> descriptors, in the backend's array type.
-        match: (desc_src, desc_tgt, normals_src, normals_tgt) -> scores.
+        describe: (edges, points, normals) -> descriptors, in the backend's array type.
+        match: (desc_src, desc_tgt, normals_src, normals_tgt, points_src, points_tgt) -> scores
+            (each network reads the inputs its architecture uses).
         data: the backend's arrays, keyed as :func:`network_inputs` keys them.
 
     Returns:
@@ -369,12 +372,13 @@ def _time_networks(describe: Callable, match: Callable, data: dict, repeats: int
     def describe_both() -> None:
         for prefix in ("src", "tgt"):
             outputs[prefix] = describe(
-                data[f"{prefix}_edges"], data[f"{prefix}_points"]
+                data[f"{prefix}_edges"], data[f"{prefix}_points"], data[f"{prefix}_normals"]
             )
 
     def match_pair() -> None:
         outputs["scores"] = match(
-            outputs["src"], outputs["tgt"], data["src_normals"], data["tgt_normals"]
+            outputs["src"], outputs["tgt"], data["src_normals"], data["tgt_normals"],
+            data["src_points"], data["tgt_points"],
         )
 
     seconds = {
@@ -392,7 +396,7 @@ def worker_onnxruntime_network(args) -> dict:
     from logdesc_rt.network import OnnxNetwork
 
     data = load_inputs(args.inputs, args.size)
-    network = OnnxNetwork(threads=args.threads)  # as Registrar(threads=T) builds it
+    network = OnnxNetwork(args.model_dir, threads=args.threads)  # as Registrar(threads=T) builds it
     seconds, _ = _time_networks(
         network.describe, network.match_scores, data, args.repeats
     )
@@ -448,7 +452,7 @@ def worker_torch(args) -> dict:
     try:
         from logdesc_rt.network import OnnxNetwork
 
-        network = OnnxNetwork(threads=args.threads)
+        network = OnnxNetwork(args.model_dir, threads=args.threads)
         # repeats=0: just the one (warm-up) call, for its outputs.
         _, reference = _time_networks(network.describe, network.match_scores, data, 0)
         gaps = {
@@ -526,6 +530,8 @@ def run_child(kind: str, size: int, inputs: Path, args) -> dict:
         "--repeats": args.repeats,
         "--checkpoint": args.checkpoint,
     }
+    if args.model_dir is not None:
+        options["--model-dir"] = Path(args.model_dir).resolve()
     command = [sys.executable, str(Path(__file__).resolve())]
     command += [str(part) for option in options.items() for part in option]
     environment = dict(
@@ -664,6 +670,9 @@ def markdown_report(payload: dict) -> str:
         "",
         f"Machine: {machine}. Command: `{payload['command']}`.",
         "",
+        f"Model: {payload['model']} ({payload['model_architecture']} architecture), "
+        f"torch checkpoint `{payload['checkpoint']}`.",
+        "",
         f"Clouds: {payload['clouds']}",
         "",
         f"Threads: {threads} (onnxruntime intra-op threads, `torch.set_num_threads`, "
@@ -726,7 +735,7 @@ def markdown_report(payload: dict) -> str:
         "",
         *startup_table(results),
         "",
-        f"Figure: `{STEM}_vs_points.png` (median times against N, log-log).",
+        f"Figure: `{payload['stem']}_vs_points.png` (median times against N, log-log).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -813,8 +822,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--checkpoint",
         type=Path,
         default=CHECKPOINT,
-        help="torch checkpoint the shipped ONNX model was exported from",
+        help="torch checkpoint the ONNX model (--model-dir) was exported from",
     )
+    parser.add_argument(
+        "--model-dir", type=Path, default=None,
+        help="model directory written by export/to_onnx.py (default: the bundled model)",
+    )
+    parser.add_argument("--stem", default=STEM, help="result file names: STEM.md, STEM.json, STEM_vs_points.png")
     parser.add_argument("--no-torch", action="store_true", help="skip torch eager")
     parser.add_argument(
         "--no-open3d", action="store_true", help="skip the Open3D peers"
@@ -861,7 +875,8 @@ def main(argv=None) -> int:
 
     from tqdm import tqdm
 
-    min_points = read_manifest(bundled_model_dir()).geometry.min_points
+    model_dir = args.model_dir or bundled_model_dir()
+    min_points = read_manifest(model_dir).geometry.min_points
     sizes = sorted(set(args.sizes))
     if sizes[0] < min_points or args.repeats < 1 or args.threads < 1:
         raise SystemExit(
@@ -875,7 +890,7 @@ def main(argv=None) -> int:
     baselines: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="latency_") as folder:
         inputs = Path(folder) / "inputs.npz"
-        save_inputs(inputs, pairs)
+        save_inputs(inputs, pairs, args.model_dir)
         tasks = child_tasks(sizes, use["torch"], use["open3d"])
         with tqdm(tasks, desc="latency", unit="child", dynamic_ncols=True) as bar:
             for kind, size in bar:
@@ -912,14 +927,17 @@ def main(argv=None) -> int:
             if checkpoint.is_relative_to(ROOT)
             else checkpoint
         ),
+        "model": read_manifest(model_dir).provenance.get("name") or str(model_dir),
+        "model_architecture": read_manifest(model_dir).model_config.get("architecture", "logdesc"),
+        "stem": args.stem,
         "skipped": skipped,
         "memory_metric": "VmHWM of /proc/self/status, KiB (ru_maxrss for reference)",
         "baselines": baselines,
         "results": results,
     }
     markdown = markdown_report(payload)
-    md_path, json_path = write_report(STEM, markdown, payload, args.out)
-    figure_path = args.out / f"{STEM}_vs_points.png"
+    md_path, json_path = write_report(args.stem, markdown, payload, args.out)
+    figure_path = args.out / f"{args.stem}_vs_points.png"
     plot_latency(results, figure_path)
     print(markdown)
     print(f"wrote {md_path}, {json_path}, {figure_path}", file=sys.stderr)
