@@ -35,7 +35,7 @@ from training.model import (  # noqa: E402
     normal_angle_lookup,
     normal_angle_term_direct,
 )
-from training.sinkhorn import log_optimal_transport  # noqa: E402
+from training.sinkhorn import log_domain_optimal_transport, log_optimal_transport  # noqa: E402
 
 from .shapes import fibonacci_sphere  # noqa: E402
 
@@ -315,6 +315,26 @@ def test_log_optimal_transport_marginals_and_reference():
         ours = log_optimal_transport(scores.double(), alpha.double(), iterations)[0].numpy()
         reference = _sinkhorn_reference(scores[0].double().numpy(), 1.0, iterations)
         np.testing.assert_allclose(ours, reference, atol=1e-10)
+
+
+@pytest.mark.parametrize("strength", [1.0, 20.0, 120.0])
+def test_scaling_sinkhorn_equals_the_log_domain_one_with_its_gradients(strength):
+    """Training's scaling-form Sinkhorn gives the log-domain iteration's values and gradients
+    (float64), from mild scores to the sharp ones of a trained network."""
+    generator = torch.Generator().manual_seed(int(strength))
+    n, m = 40, 33
+    scores = torch.randn(2, n, m, generator=generator, dtype=torch.float64) * 0.2 * strength
+    scores[:, torch.arange(25), torch.randperm(m, generator=generator)[:25]] += strength
+    weights = torch.randn(2, n + 1, m + 1, generator=generator, dtype=torch.float64)
+    results = []
+    for sinkhorn in (log_optimal_transport, log_domain_optimal_transport):
+        leaf = scores.clone().requires_grad_()
+        alpha = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
+        out = sinkhorn(leaf, alpha, 50)
+        (out * weights).sum().backward()
+        results.append((out.detach(), leaf.grad, alpha.grad))
+    for ours, reference in zip(results[0], results[1]):
+        torch.testing.assert_close(ours, reference, atol=1e-8 * max(1.0, strength), rtol=1e-7)
 
 
 def test_log_optimal_transport_gradient_reaches_dustbin():

@@ -14,8 +14,8 @@ For every protocol, test pair i is built from test shape i with
 the same shape gets the same rigid motion under every protocol and every checkpoint sees the
 same pairs. The pipeline per pair mirrors the runtime:
 
-    torch network (scores) -> NumPy Sinkhorn (logdesc_rt.matching.log_optimal_transport)
-    -> mutual matches -> FSR (logdesc_rt.pose.fsr) in network units
+    torch network (scores) -> NumPy Sinkhorn and mutual matches
+    (logdesc_rt.matching.sinkhorn_matches, the runtime's reader) -> FSR (logdesc_rt.pose.fsr) in network units
     -> PairNormalization.pose_to_user_frame -> paper metrics in the user (dataset) frame.
 
 Reported per protocol: RMSE(R), MAE(R) (Euler 'zyx' degrees), RMSE(t), MAE(t), L_R (deg), L_t,
@@ -46,7 +46,7 @@ import numpy as np
 
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig
 from logdesc_rt.errors import InvalidPointCloudError
-from logdesc_rt.matching import Matches, log_optimal_transport, matches_as_array, mutual_matches
+from logdesc_rt.matching import Matches, matches_as_array, mutual_matches, sinkhorn_matches
 from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg
 from logdesc_rt.normalization import PairNormalization
 from logdesc_rt.pose import FsrConfig, fsr
@@ -76,6 +76,7 @@ __all__ = [
     "model_from_checkpoint",
     "modelnet10_test_dataset",
     "register_from_log_assignment",
+    "register_from_matches",
     "summarize",
     "validation_dataset",
 ]
@@ -141,6 +142,16 @@ def register_from_log_assignment(
         the identity.
     """
     matches = mutual_matches(log_assignment, match_threshold)
+    return register_from_matches(matches, source_network, target_network, fsr_config)
+
+
+def register_from_matches(
+    matches: Matches,
+    source_network: np.ndarray,
+    target_network: np.ndarray,
+    fsr_config: FsrConfig = FsrConfig(),
+) -> tuple[np.ndarray, Matches, bool]:
+    """The FSR pose of mutual matches in network units: (T (4, 4), the matches, failed)."""
     if len(matches) < MIN_MATCHES:
         return np.eye(4), matches, True
     try:
@@ -222,7 +233,7 @@ def evaluate_model(
 
     The network gives the (B, N, M) scores (descriptor + transformer, no torch Sinkhorn); the
     assignment, the matches and the pose are computed in NumPy, exactly as the deployed
-    runtime does (float64 Sinkhorn with the model's learned dustbin score).
+    runtime does (:func:`logdesc_rt.matching.sinkhorn_matches` with the model's learned dustbin).
     """
     import torch
     from torch.utils.data import DataLoader
@@ -244,12 +255,11 @@ def evaluate_model(
             scores = network_scores(model, batch, device, amp)
             for row in range(scores.shape[0]):
                 start = time.perf_counter()
-                log_assignment = log_optimal_transport(scores[row], dustbin, iterations)
+                # The runtime's own reader of the Sinkhorn assignment (float32, as deployed).
+                matches = sinkhorn_matches(scores[row], dustbin, iterations, match_threshold)
                 source_net = batch["src_points"][row].numpy().astype(np.float64)
                 target_net = batch["tgt_points"][row].numpy().astype(np.float64)
-                pose_net, matches, failed = register_from_log_assignment(
-                    log_assignment, source_net, target_net, match_threshold, fsr_config
-                )
+                pose_net, matches, failed = register_from_matches(matches, source_net, target_net, fsr_config)
                 normalization = PairNormalization(
                     source_centre=batch["source_centre"][row].numpy(),
                     target_centre=batch["target_centre"][row].numpy(),
@@ -285,9 +295,11 @@ def network_scores(model, batch: dict, device, amp: bool = False) -> np.ndarray:
     inputs = {name: batch[name].to(device, non_blocking=True) for name in names}
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp and device.type == "cuda")
     with torch.no_grad(), autocast:
-        desc_src = model.describe(inputs["src_edges"], inputs["src_points"])
-        desc_tgt = model.describe(inputs["tgt_edges"], inputs["tgt_points"])
-        scores = model.match_scores(desc_src, desc_tgt, inputs["src_normals"], inputs["tgt_normals"])
+        desc_src = model.describe(inputs["src_edges"], inputs["src_points"], inputs["src_normals"])
+        desc_tgt = model.describe(inputs["tgt_edges"], inputs["tgt_points"], inputs["tgt_normals"])
+        scores = model.match_scores(
+            desc_src, desc_tgt, inputs["src_normals"], inputs["tgt_normals"], inputs["src_points"], inputs["tgt_points"]
+        )
     return scores.float().cpu().numpy().astype(np.float64)
 
 
