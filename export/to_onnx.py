@@ -96,6 +96,8 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
                 dynamic_axes=dynamic_axes,
                 opset_version=opset,
                 dynamo=False,
+                # onnxruntime's contrib domain, for the v3 network's fused attention.
+                custom_opsets={"com.microsoft": 1},
             )
 
     matching = MatchingConfig(sinkhorn_iterations=config.sinkhorn_iterations)

@@ -151,9 +151,11 @@ def test_the_shipped_v2_descriptors_are_not_invariant(shape):
 
 
 def test_v3_graphs_hold_no_pairwise_index_or_gather(v3_registrar):
-    """No N x N gather or integer index anywhere: the geometric terms are query / key channels."""
+    """No N x N gather or integer index anywhere: the geometric terms are query / key channels,
+    and every attention is onnxruntime's fused kernel (no separate N x M Softmax)."""
     onnx = pytest.importorskip("onnx")
     for name in ("descriptor.onnx", "matcher.onnx"):
         graph = onnx.load(str(v3_registrar.network.model_dir / name)).graph
         operators = {node.op_type for node in graph.node}
-        assert not operators & {"GatherElements", "GatherND", "Floor", "Acos"}, (name, operators)
+        assert not operators & {"GatherElements", "GatherND", "Floor", "Acos", "Softmax"}, (name, operators)
+        assert "MultiHeadAttention" in operators, name

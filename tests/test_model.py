@@ -266,6 +266,18 @@ def test_no_tensor_of_n_by_n_by_d_elements():
     assert monitor.largest >= limit
 
 
+def test_v3_holds_no_tensor_of_n_by_n_by_d_elements():
+    generator = torch.Generator().manual_seed(5)
+    count, config = 128, PRESETS["tiny_v3"]
+    model = LoGDescMatcher(config)
+    inputs = _random_inputs(generator, 1, count, channels=config.edge_channels)
+    inputs += _random_inputs(generator, 1, count, channels=config.edge_channels)
+    with _LargestTensor() as monitor:
+        out = model(*inputs)
+        (out["log_assignment"].sum() + out["descriptors_src"].sum()).backward()
+    assert monitor.largest < count * count * config.descriptor_dim / 4, monitor.largest
+
+
 def test_transformer_runs_on_2048_points():
     """2048 points per cloud, twice the working size (its speed: benchmarks/latency.py)."""
     generator = torch.Generator().manual_seed(6)
