@@ -149,7 +149,7 @@ class MatchingConfig(_DictMixin):
 # computes them; its module docstring defines each).
 VERIFICATION_FEATURES = (
     "fitness",
-    "tight_fitness",
+    "sharpness",
     "rmse_ratio",
     "reverse_fitness",
     "normal_agreement",
@@ -157,6 +157,7 @@ VERIFICATION_FEATURES = (
     "log_matches",
     "agreement",
     "margin",
+    "symmetry",
 )
 
 
@@ -175,9 +176,11 @@ class VerificationConfig(_DictMixin):
         distance_fraction: a scored point is an inlier within this x scale (5 %, like
             fitness); independent of the user's max_correspondence_distance, so that the
             calibration holds whatever distance the user reports fitness at.
-        tight_fraction: the tighter distance of the ``tight_fitness`` feature, x scale.
+        sharp_factor: the ``sharpness`` feature counts inliers closer than this many times the
+            target's point spacing (median nearest-neighbour distance of the scored subset).
         match_tolerance: a learned match agrees with a pose within this, x scale (FSR's tau).
-        refine_candidates: this many best-scoring distinct candidates get a short ICP.
+        refine_candidates: this many best-scoring distinct candidates get a short ICP (all of
+            them by default: there are at most five).
         icp_iterations: iterations of that ICP (point-to-plane, on the subsets).
         same_pose_deg: two candidates closer than this (and than ``distance_fraction`` in
             translation) are one hypothesis; it also bounds how far the returned unrefined
@@ -192,14 +195,16 @@ class VerificationConfig(_DictMixin):
     source_points: int = 2000
     target_points: int = 8000
     distance_fraction: float = 0.05
-    tight_fraction: float = 0.015
+    sharp_factor: float = 1.0
     match_tolerance: float = 0.08
-    refine_candidates: int = 3
+    refine_candidates: int = 5
     icp_iterations: int = 20
-    same_pose_deg: float = 2.5
-    weights: tuple[float, ...] = (0.0,) * len(VERIFICATION_FEATURES)
-    bias: float = 0.0
-    success_threshold: float = 0.5
+    same_pose_deg: float = 4.0
+    # Fitted by benchmarks/calibrate_success.py on validation pairs (bundled model
+    # small-h100-v2); benchmarks/results/success_calibration.{md,json} say on what and how well.
+    weights: tuple[float, ...] = (0.9126, 2.9269, -10.1488, 1.2178, 1.6810, 1.0706, 3.4001, 0.6722, -3.5153, -1.7593)
+    bias: float = -2.2202
+    success_threshold: float = 0.3960
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -214,7 +219,7 @@ class VerificationConfig(_DictMixin):
         for name in ("source_points", "target_points"):
             if getattr(self, name) < 10:
                 raise ValueError(f"VerificationConfig.{name} must be >= 10, got {getattr(self, name)}")
-        for name in ("distance_fraction", "tight_fraction", "match_tolerance", "same_pose_deg"):
+        for name in ("distance_fraction", "sharp_factor", "match_tolerance", "same_pose_deg"):
             value = getattr(self, name)
             if not 0.0 < value < float("inf"):  # also rejects NaN
                 raise ValueError(f"VerificationConfig.{name} must be finite and > 0, got {value}")
@@ -383,6 +388,9 @@ class RefinementConfig(_DictMixin):
         max_iterations: ICP's iteration limit.
         tolerance: ICP stops when an update's rotation (radians) plus translation (as a
             fraction of the correspondence distance) is below this.
+        adaptive: once ICP converges, halve the distance and run again while enough inliers
+            stay (:mod:`logdesc_rt.refinement`): on real scans with partial overlap a distance
+            of 5 % of the radius lets points beside the overlap pull the pose.
     """
 
     method: str | None = None
@@ -390,6 +398,7 @@ class RefinementConfig(_DictMixin):
     distance_fraction: float = 0.05
     max_iterations: int = 30
     tolerance: float = 1e-7
+    adaptive: bool = True
 
     def __post_init__(self) -> None:
         if self.method is not None and self.method not in REFINEMENT_METHODS:

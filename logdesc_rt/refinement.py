@@ -4,6 +4,15 @@ Point-to-point (closed-form SVD each iteration) or point-to-plane (linearised le
 with target normals from a PCA of each target point's nearest neighbours). Correspondences
 farther than ``max_distance`` are ignored.
 
+Adaptive distance (``adaptive=True``, what :class:`~logdesc_rt.config.RefinementConfig` uses by
+default): once ICP converges, the correspondence distance halves and ICP runs again, as long as
+at least half of the inliers stay within the tighter distance and it stays above three times
+the target's point spacing (median nearest-neighbour distance); at most four stages. On a real
+scan pair with little overlap, a distance of 5 % of the radius lets points beside the overlap
+pull the pose: on Stanford Bunny bun000 -> bun270 (about 25 % overlap) ICP started *at the
+truth* drifts to 2.6 degrees with it, and stays within 0.3 degree at 1/4 of it. On noisy data,
+where residuals fill the distance already, halving would drop most inliers and does not happen.
+
 Placement and unit do not matter: ICP runs in a working frame where the target is centred on
 its centroid and lengths are divided by ``max_distance``, and the point-to-plane step
 linearises the rotation about the centroid of the current correspondences, not about the
@@ -28,6 +37,12 @@ from .validation import as_points
 ICP_METHODS = ("point_to_point", "point_to_plane")
 NORMAL_NEIGHBOURS = 10  # target points whose covariance gives each target normal
 MIN_CORRESPONDENCES = 6  # fewer and a step is not well determined
+# Adaptive distance: each stage halves the correspondence distance, down to SPACING_MULTIPLE x
+# the target's point spacing, while at least KEEP_SHARE of the current inliers stay inliers;
+# at most MAX_STAGES stages.
+SPACING_MULTIPLE = 3.0
+KEEP_SHARE = 0.25
+MAX_STAGES = 4
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,7 @@ def icp(
     method: str = "point_to_plane",
     max_iterations: int = 30,
     tolerance: float = 1e-7,
+    adaptive: bool = False,
 ) -> IcpResult:
     """Refine ``initial`` by iterative closest points.
 
@@ -100,12 +116,16 @@ def icp(
         initial: (4, 4) rigid starting pose, source -> target.
         max_distance: > 0, correspondences farther than this are dropped (clouds' unit).
         method: "point_to_point" or "point_to_plane".
-        max_iterations: upper bound on iterations (>= 1).
+        max_iterations: upper bound on iterations (>= 1), per stage.
         tolerance: stop when an update's rotation (radians) plus translation (as a fraction of
             ``max_distance``) is below this.
+        adaptive: after convergence, halve the distance and run again while the inliers hold
+            (module docstring); at most 4 stages.
 
     Returns:
-        :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose.
+        :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose at
+        ``max_distance`` (whatever distance the last stage used); ``iterations`` counts all
+        stages.
 
     Raises:
         ValueError: unknown method, ``max_distance`` not > 0, ``initial`` not a rigid (4, 4)
@@ -138,23 +158,23 @@ def icp(
     normals = estimate_normals(target_working) if method == "point_to_plane" else None
 
     pose = to_working @ initial @ from_working
-    stop_reason, iterations = "max_iterations", max_iterations
-    for iteration in range(1, max_iterations + 1):
-        moved = source_working @ pose[:3, :3].T + pose[:3, 3]
-        distance, index = tree.query(moved, k=1, distance_upper_bound=1.0)
-        close = np.isfinite(distance)
-        if np.count_nonzero(close) < MIN_CORRESPONDENCES:
-            stop_reason, iterations = "too_few_correspondences", iteration - 1
+    floor = 0.0
+    if adaptive:
+        spacing, _ = tree.query(target_working, k=2)
+        floor = SPACING_MULTIPLE * float(np.median(spacing[:, 1]))
+    stage_distance, iterations, stop_reason = 1.0, 0, "max_iterations"
+    for _ in range(MAX_STAGES if adaptive else 1):
+        pose, used, stop_reason = _icp_stage(
+            source_working, target_working, tree, normals, pose, stage_distance, max_iterations, tolerance
+        )
+        iterations += used
+        if stop_reason == "too_few_correspondences" or stage_distance / 2 < floor:
             break
-        if normals is None:
-            step = rigid_transform_svd(moved[close], target_working[index[close]])
-        else:
-            step = _point_to_plane_step(moved[close], target_working[index[close]], normals[index[close]])
-        pose = step @ pose
-        change = np.linalg.norm(Rotation.from_matrix(step[:3, :3]).as_rotvec()) + np.linalg.norm(step[:3, 3])
-        if change < tolerance:
-            stop_reason, iterations = "converged", iteration
+        distance, _ = tree.query(source_working @ pose[:3, :3].T + pose[:3, 3], k=1, distance_upper_bound=stage_distance)
+        inliers = np.count_nonzero(np.isfinite(distance))
+        if np.count_nonzero(distance < stage_distance / 2) < KEEP_SHARE * inliers:
             break
+        stage_distance /= 2
 
     moved = source_working @ pose[:3, :3].T + pose[:3, 3]
     distance, _ = tree.query(moved, k=1, distance_upper_bound=1.0)
@@ -172,6 +192,35 @@ def icp(
         inlier_rmse=rmse,
         stop_reason=stop_reason,
     )
+
+
+def _icp_stage(
+    source: np.ndarray,
+    target: np.ndarray,
+    tree: KDTree,
+    normals: np.ndarray | None,
+    pose: np.ndarray,
+    max_distance: float,
+    max_iterations: int,
+    tolerance: float,
+) -> tuple[np.ndarray, int, str]:
+    """ICP iterations at one correspondence distance (working frame); (pose, iterations, why it stopped)."""
+    for iteration in range(1, max_iterations + 1):
+        moved = source @ pose[:3, :3].T + pose[:3, 3]
+        distance, index = tree.query(moved, k=1, distance_upper_bound=max_distance)
+        close = np.isfinite(distance)
+        if np.count_nonzero(close) < MIN_CORRESPONDENCES:
+            return pose, iteration - 1, "too_few_correspondences"
+        if normals is None:
+            step = rigid_transform_svd(moved[close], target[index[close]])
+        else:
+            step = _point_to_plane_step(moved[close], target[index[close]], normals[index[close]])
+        pose = step @ pose
+        # Relative to the stage's distance, so a tighter stage converges as tightly.
+        change = np.linalg.norm(Rotation.from_matrix(step[:3, :3]).as_rotvec()) + np.linalg.norm(step[:3, 3]) / max_distance
+        if change < tolerance:
+            return pose, iteration, "converged"
+    return pose, max_iterations, "max_iterations"
 
 
 def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray) -> np.ndarray:

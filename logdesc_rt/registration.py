@@ -436,6 +436,7 @@ class Registrar:
                     method=refinement.method,
                     max_iterations=refinement.max_iterations,
                     tolerance=refinement.tolerance,
+                    adaptive=refinement.adaptive,
                 )
             refined = icp_result.transformation
             with _timed(timings, "verification"):

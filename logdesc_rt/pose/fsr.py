@@ -23,11 +23,9 @@ Differences from the official implementation, all deliberate:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from ..config import _DictMixin
+from ..config import FsrConfig
 from ..errors import DegenerateGeometryError, TooFewPointsError
 from ..sampling import _farthest_point_indices, _power_of_two_scale
 from .svd import (
@@ -41,69 +39,6 @@ from .svd import (
     validate_correspondences,
     validate_weights,
 )
-
-
-@dataclass(frozen=True)
-class FsrConfig(_DictMixin):
-    """Parameters of :func:`fsr` (paper Algorithm 1; official defaults).
-
-    Attributes:
-        iterations: N, the number of sampling rounds (official: 7).
-        sample_size: k, matched points farthest-point-sampled per round. 0 (default) means
-            the official rule ``max(3, n_matches // iterations)``; any explicit k >= 3 is
-            used as is (capped at the number of matches).
-        inlier_threshold: tau, a pair counts as inlier when ``||R x + t - y|| < tau``
-            (network units; official 0.08, where a training object fits the unit sphere).
-        seed: seeds ``np.random.default_rng``, which picks each round's first FPS point.
-        min_matches_for_sampling: with fewer matches than this, no rounds are run: one
-            SVD, weighted by the confidences, on the ``fallback_matches`` most confident
-            matches (official: 100).
-        fallback_matches: how many of the most confident matches that single SVD uses
-            (official: 128).
-        refit_on_inliers: an improvement over the paper, on by default. The winning
-            transform (or the few-matches SVD) is refined by local optimisation: re-solve
-            the SVD on its inliers (weighted by the confidences when given), recount, and
-            repeat until the inlier set stops changing, at most ``refit_rounds`` times
-            (see :func:`~logdesc_rt.pose.svd.refine_on_inliers`). The paper keeps the best
-            round's transform, fitted to only k pairs, some of them outliers: with 50 %
-            outliers among 500 matches that transform is typically 5-20 degrees off, the
-            refined one within 0.1 degree.
-        refit_rounds: the most re-solves ``refit_on_inliers`` performs (>= 1).
-    """
-
-    iterations: int = 7
-    sample_size: int = 0
-    inlier_threshold: float = 0.08
-    seed: int = 0
-    min_matches_for_sampling: int = 100
-    fallback_matches: int = 128
-    refit_on_inliers: bool = True
-    refit_rounds: int = 5
-
-    def __post_init__(self) -> None:
-        if self.iterations < 1:
-            raise ValueError(f"FsrConfig.iterations must be >= 1, got {self.iterations}")
-        if self.sample_size != 0 and self.sample_size < 3:
-            raise ValueError(
-                f"FsrConfig.sample_size must be 0 (automatic) or >= 3, got {self.sample_size}"
-            )
-        if not (np.isfinite(self.inlier_threshold) and self.inlier_threshold > 0):
-            raise ValueError(
-                f"FsrConfig.inlier_threshold must be finite and > 0, got {self.inlier_threshold}"
-            )
-        if self.seed < 0:
-            raise ValueError(f"FsrConfig.seed must be >= 0, got {self.seed}")
-        if self.min_matches_for_sampling < 0:
-            raise ValueError("FsrConfig.min_matches_for_sampling must be >= 0")
-        if self.fallback_matches < 3:
-            raise ValueError(f"FsrConfig.fallback_matches must be >= 3, got {self.fallback_matches}")
-        if self.refit_rounds < 1:
-            raise ValueError(f"FsrConfig.refit_rounds must be >= 1, got {self.refit_rounds}")
-
-    def resolved_sample_size(self, match_count: int) -> int:
-        """k for ``match_count`` matches: the explicit value, or ``max(3, n // N)``; <= n."""
-        size = self.sample_size if self.sample_size else max(3, match_count // self.iterations)
-        return min(size, match_count)
 
 
 def fsr(

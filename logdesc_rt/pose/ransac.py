@@ -10,11 +10,10 @@ target edges to within the similarity ratio; collinear samples are rejected too.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import _DictMixin
+from ..config import RansacConfig
 from ..errors import DegenerateGeometryError
 from ..validation import COLLINEAR_RELATIVE_TOLERANCE
 from .svd import (
@@ -29,60 +28,6 @@ from .svd import (
 
 # At most this many (hypothesis, correspondence) residuals are held at once (~50 MB).
 MAX_RESIDUALS_PER_CHUNK = 2_000_000
-
-
-@dataclass(frozen=True)
-class RansacConfig(_DictMixin):
-    """Parameters of :func:`ransac`.
-
-    Attributes:
-        inlier_threshold: a correspondence is an inlier when ``||R x + t - y|| < this``
-            (network units, same default as FSR's tau).
-        max_iterations: the most 3-point hypotheses drawn (Open3D's ``max_iteration``).
-        confidence: stop early once this probability of having drawn an all-inlier sample
-            is reached, estimated from the best inlier ratio w: after
-            ``log(1 - confidence) / log(1 - w**3)`` draws. 1.0 disables the early stop.
-        edge_length_similarity: reject a sample unless each of its 3 source edges and the
-            matching target edge satisfy ``shorter >= similarity * longer`` (Open3D's
-            checker, 0.9). 0 disables the check.
-        batch_size: hypotheses drawn and solved together. It changes speed and, through
-            the early stop (checked after each batch), which hypotheses are drawn; results
-            stay reproducible for a given config.
-        seed: seeds ``np.random.default_rng`` for the samples.
-        refit_on_inliers: refine the best hypothesis by re-solving the SVD on its inliers,
-            repeated until they stop changing, at most ``refit_rounds`` times (see
-            :func:`~logdesc_rt.pose.svd.refine_on_inliers`).
-        refit_rounds: the most re-solves of that refinement (>= 1).
-    """
-
-    inlier_threshold: float = 0.08
-    max_iterations: int = 10000
-    confidence: float = 0.999
-    edge_length_similarity: float = 0.9
-    batch_size: int = 256
-    seed: int = 0
-    refit_on_inliers: bool = True
-    refit_rounds: int = 5
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.inlier_threshold) and self.inlier_threshold > 0):
-            raise ValueError(
-                f"RansacConfig.inlier_threshold must be finite and > 0, got {self.inlier_threshold}"
-            )
-        if self.max_iterations < 1:
-            raise ValueError(f"RansacConfig.max_iterations must be >= 1, got {self.max_iterations}")
-        if not 0.0 < self.confidence <= 1.0:
-            raise ValueError(f"RansacConfig.confidence must be in (0, 1], got {self.confidence}")
-        if not 0.0 <= self.edge_length_similarity < 1.0:
-            raise ValueError(
-                f"RansacConfig.edge_length_similarity must be in [0, 1), got {self.edge_length_similarity}"
-            )
-        if self.batch_size < 1:
-            raise ValueError(f"RansacConfig.batch_size must be >= 1, got {self.batch_size}")
-        if self.seed < 0:
-            raise ValueError(f"RansacConfig.seed must be >= 0, got {self.seed}")
-        if self.refit_rounds < 1:
-            raise ValueError(f"RansacConfig.refit_rounds must be >= 1, got {self.refit_rounds}")
 
 
 def _draw_triplets(generator: np.random.Generator, count: int, population: int) -> np.ndarray:

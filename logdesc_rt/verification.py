@@ -1,0 +1,356 @@
+"""Verified hypotheses and the success flag.
+
+The learned matches yield several candidate poses; each is scored on the full clouds (or
+seeded subsets of them, for speed), the best few get a short ICP, and a logistic model turns
+the best one's scores into a confidence that the pose is right. ``success`` is that
+confidence reaching a threshold. The model's coefficients and the threshold were fitted on
+validation pairs only (``benchmarks/calibrate_success.py``; what and how in
+``benchmarks/results/success_calibration.md``).
+
+Candidates (network units, from the mutual matches and their Sinkhorn confidences):
+
+- ``fsr``: the paper's estimator (:func:`~logdesc_rt.pose.fsr`);
+- ``ransac``: 3-point RANSAC (:func:`~logdesc_rt.pose.ransac`);
+- ``svd``: confidence-weighted SVD on every match (outliers included);
+- ``top_k``: SVD on the most confident ``top_k_fraction`` of the matches, then re-solved on
+  its inliers.
+
+Candidates closer than ``same_pose_deg`` (and the inlier distance) are one hypothesis; how
+many estimators agree on it is a feature.
+
+Features of a pose T (all lengths relative to the pair's scale s, the larger cloud's radius;
+``d = distance_fraction * s``), in the order of
+:data:`~logdesc_rt.config.VERIFICATION_FEATURES`:
+
+- ``fitness``: share of the scored source points with a target point within d after T;
+- ``sharpness``: share of those inliers closer than ``sharp_factor`` times the target's point
+  spacing (median nearest-neighbour distance within the scored target points): after ICP a
+  right pose lines the overlap up to the scan's noise, a wrong one leaves residuals spread
+  over [0, d], whatever the overlap (on partial scans a wrong pose can have the higher fitness);
+- ``rmse_ratio``: RMS distance of the fitness inliers / d (1 when there are none);
+- ``reverse_fitness``: share of the scored target points with a moved source point within d;
+- ``normal_agreement``: mean |n_source . n_target| over the inlier pairs (normals from a
+  10-neighbour PCA of each subset), 0 without inliers: wrong poses cross surfaces;
+- ``match_inlier_ratio``: confidence-weighted share of the learned matches that T maps within
+  ``match_tolerance * s`` of their partner;
+- ``log_matches``: log(1 + number of mutual matches) / log(1 + 1024);
+- ``agreement``: share of the candidate estimators (CANDIDATE_ESTIMATORS; a user's initial
+  guess does not count) whose pose is this hypothesis;
+- ``margin``: fitness of this hypothesis minus that of the best other distinct hypothesis,
+  both after the short ICP (0 when there is no other): an ambiguous pair has rivals;
+- ``symmetry``: the best fitness of the pose composed with a half-turn of the source about
+  one of its principal axes (through its centroid), divided by the pose's own fitness
+  (at most 1.5): near 1 for an object that looks the same turned over, where geometry alone
+  cannot tell the right pose from its flip.
+
+The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
+the pose sits in the basin of a good alignment. When the caller does not refine, the
+unrefined pose is returned, and it counts as a success only if it also lies within
+``same_pose_deg`` (and d) of that verified alignment.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from .config import VERIFICATION_FEATURES, VerificationConfig
+from .errors import DegenerateGeometryError, TooFewPointsError
+from .metrics import rotation_error_deg
+from .pose import FsrConfig, RansacConfig, fsr, ransac, rigid_transform_svd
+from .pose.svd import refine_on_inliers
+from .refinement import estimate_normals, icp
+
+CANDIDATE_ESTIMATORS = ("fsr", "ransac", "svd", "top_k")
+LOG_MATCH_SCALE = math.log1p(1024.0)  # the working size the bundled model was trained at
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One distinct candidate pose and how it scored.
+
+    Attributes:
+        estimators: the candidate estimators that proposed it (first: the one kept).
+        transformation: (4, 4) float64 user-frame pose as the estimator gave it.
+        verified_transformation: (4, 4) after the short ICP (the same pose if not refined).
+        features: feature name -> value, at ``verified_transformation`` (or at
+            ``transformation`` for hypotheses that were not refined).
+        confidence: the calibrated probability that the verified pose is right, in [0, 1].
+        refined: whether the short ICP ran on it.
+    """
+
+    estimators: tuple[str, ...]
+    transformation: np.ndarray
+    verified_transformation: np.ndarray
+    features: dict[str, float]
+    confidence: float
+    refined: bool
+
+    @property
+    def shift_deg(self) -> float:
+        """Rotation between the estimator's pose and the verified pose, degrees."""
+        return float(rotation_error_deg(self.transformation[:3, :3], self.verified_transformation[:3, :3]))
+
+
+@dataclass(frozen=True)
+class VerificationResult:
+    """What verification chose and how sure it is.
+
+    Attributes:
+        best: the chosen hypothesis (highest confidence).
+        hypotheses: every distinct hypothesis, best first.
+        candidate_count: candidate poses estimated (before merging equal ones).
+    """
+
+    best: Hypothesis
+    hypotheses: tuple[Hypothesis, ...] = field(default_factory=tuple)
+    candidate_count: int = 0
+
+
+def estimate_pose(
+    estimator: str,
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+) -> np.ndarray:
+    """(4, 4) network-frame pose of one candidate estimator from matched points.
+
+    Args:
+        estimator: one of CANDIDATE_ESTIMATORS (module docstring).
+        source_matched, target_matched: (K, 3) float64 matched points, K >= 3, network units.
+        confidences: (K,) float64 match probabilities.
+        fsr_config, ransac_config: the two robust estimators' parameters (and seeds).
+        top_k_fraction: share of the most confident matches the "top_k" candidate fits.
+
+    Raises:
+        ValueError: unknown estimator.
+        DegenerateGeometryError, TooFewPointsError: the matches do not determine a pose.
+    """
+    if estimator == "fsr":
+        return fsr(source_matched, target_matched, confidences, fsr_config).transformation
+    if estimator == "ransac":
+        return ransac(source_matched, target_matched, ransac_config).transformation
+    if estimator == "svd":
+        return rigid_transform_svd(source_matched, target_matched, confidences)
+    if estimator == "top_k":
+        count = max(3, int(round(top_k_fraction * len(confidences))))
+        chosen = np.argsort(-confidences, kind="stable")[:count]
+        pose = rigid_transform_svd(source_matched[chosen], target_matched[chosen], confidences[chosen])
+        return refine_on_inliers(
+            pose, source_matched, target_matched, confidences, fsr_config.inlier_threshold, fsr_config.refit_rounds
+        )
+    raise ValueError(f"estimator {estimator!r}: expected one of {CANDIDATE_ESTIMATORS}")
+
+
+def candidate_poses(
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+) -> list[tuple[str, np.ndarray]]:
+    """Every candidate estimator's pose (:func:`estimate_pose`), network units.
+
+    Returns:
+        [(estimator name, (4, 4) network-frame pose)], in CANDIDATE_ESTIMATORS order, leaving
+        out an estimator whose points are degenerate (all on a line, say).
+    """
+    candidates: list[tuple[str, np.ndarray]] = []
+    for name in CANDIDATE_ESTIMATORS:
+        try:
+            pose = estimate_pose(
+                name, source_matched, target_matched, confidences, fsr_config, ransac_config, top_k_fraction
+            )
+        except (DegenerateGeometryError, TooFewPointsError):
+            continue
+        candidates.append((name, pose))
+    return candidates
+
+
+def _same_pose(first: np.ndarray, second: np.ndarray, degrees: float, distance: float, centre: np.ndarray) -> bool:
+    """Whether two poses agree: rotation within ``degrees`` and ``centre`` moved within ``distance``."""
+    if rotation_error_deg(first[:3, :3], second[:3, :3]) > degrees:
+        return False
+    moved = first[:3, :3] @ centre + first[:3, 3] - (second[:3, :3] @ centre + second[:3, 3])
+    return bool(np.linalg.norm(moved) <= distance)
+
+
+def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
+    """Calibrated probability, in [0, 1], from a (F,) feature vector."""
+    z = config.bias + float(np.dot(config.weights, features))
+    return float(1.0 / (1.0 + math.exp(-z))) if z > -700 else 0.0
+
+
+class PoseVerifier:
+    """Scores poses of one pair on seeded subsets of the full clouds.
+
+    Args:
+        source, target: (N, 3) / (M, 3) float64 full clouds, user frame.
+        source_matched, target_matched: (K, 3) float64 matched points, user frame.
+        confidences: (K,) float64 their match probabilities.
+        scale: the pair's scale s (user units per network unit: the larger radius).
+        config: see :class:`~logdesc_rt.config.VerificationConfig`.
+    """
+
+    def __init__(
+        self,
+        source: np.ndarray,
+        target: np.ndarray,
+        source_matched: np.ndarray,
+        target_matched: np.ndarray,
+        confidences: np.ndarray,
+        scale: float,
+        config: VerificationConfig = VerificationConfig(),
+    ):
+        generator = np.random.default_rng(config.seed)
+        self.config = config
+        self.source = _subset(source, config.source_points, generator)
+        self.target = _subset(target, config.target_points, generator)
+        self.source_matched = source_matched
+        self.target_matched = target_matched
+        self.confidences = confidences
+        self.distance = config.distance_fraction * scale
+        spacing, _ = KDTree(self.target).query(self.target, k=2)
+        self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
+        self.match_tolerance = config.match_tolerance * scale
+        self.centre = self.source.mean(axis=0)
+        self.target_tree = KDTree(self.target)
+        self.target_normals = estimate_normals(self.target)
+        self.source_normals = estimate_normals(self.source)
+        # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).
+        _, axes = np.linalg.eigh(np.cov((self.source - self.centre).T))
+        self.half_turns = np.tile(np.eye(4), (3, 1, 1))
+        for i in range(3):
+            turn = 2.0 * np.outer(axes[:, i], axes[:, i]) - np.eye(3)  # rotation by pi about axis i
+            self.half_turns[i, :3, :3] = turn
+            self.half_turns[i, :3, 3] = self.centre - turn @ self.centre
+
+    def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
+        """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        moved = self.source @ rotation.T + translation
+        distance, index = self.target_tree.query(moved, k=1)
+        inlier = distance < self.distance
+        fitness = float(np.mean(inlier))
+        sharp = float(np.mean(distance[inlier] < self.sharp_distance)) if inlier.any() else 0.0
+        rmse = float(np.sqrt(np.mean(distance[inlier] ** 2)) / self.distance) if inlier.any() else 1.0
+        reverse_distance, _ = KDTree(moved).query(self.target, k=1)
+        reverse = float(np.mean(reverse_distance < self.distance))
+        if inlier.any():
+            moved_normals = self.source_normals[inlier] @ rotation.T
+            agreement_of_normals = float(
+                np.mean(np.abs(np.sum(moved_normals * self.target_normals[index[inlier]], axis=1)))
+            )
+        else:
+            agreement_of_normals = 0.0
+        residual = np.linalg.norm(self.source_matched @ rotation.T + translation - self.target_matched, axis=1)
+        total = float(np.sum(self.confidences))
+        match_ratio = float(np.sum(self.confidences[residual < self.match_tolerance]) / total) if total > 0 else 0.0
+        flipped_fitness = 0.0
+        for turn in self.half_turns:
+            flipped = pose @ turn
+            flipped_distance, _ = self.target_tree.query(self.source @ flipped[:3, :3].T + flipped[:3, 3], k=1)
+            flipped_fitness = max(flipped_fitness, float(np.mean(flipped_distance < self.distance)))
+        symmetry = min(1.5, flipped_fitness / fitness) if fitness > 0 else 0.0
+        values = {
+            "fitness": fitness,
+            "sharpness": sharp,
+            "rmse_ratio": rmse,
+            "reverse_fitness": reverse,
+            "normal_agreement": agreement_of_normals,
+            "match_inlier_ratio": match_ratio,
+            "log_matches": math.log1p(len(self.confidences)) / LOG_MATCH_SCALE,
+            "agreement": agreement,
+            "margin": margin,
+            "symmetry": symmetry,
+        }
+        return np.array([values[name] for name in VERIFICATION_FEATURES])
+
+    def refine(self, pose: np.ndarray) -> np.ndarray:
+        """(4, 4) ``pose`` after a short point-to-plane ICP on the subsets (adaptive distance)."""
+        return icp(
+            self.source,
+            self.target,
+            pose,
+            self.distance,
+            "point_to_plane",
+            max_iterations=self.config.icp_iterations,
+            adaptive=True,
+        ).transformation
+
+    def verify(self, candidates: list[tuple[str, np.ndarray]]) -> VerificationResult:
+        """Merge equal candidates, refine the best few, score, and rank them.
+
+        Args:
+            candidates: [(estimator name, (4, 4) user-frame pose)], at least one; names outside
+                CANDIDATE_ESTIMATORS (e.g. "init") are scored but do not count as agreement.
+
+        Returns:
+            :class:`VerificationResult`, hypotheses ranked by confidence (ties: the order of
+            ``candidates``).
+        """
+        if not candidates:
+            raise ValueError("verify: no candidate poses")
+        config = self.config
+        groups: list[tuple[list[str], np.ndarray]] = []
+        for name, pose in candidates:
+            for names, kept in groups:
+                if _same_pose(pose, kept, config.same_pose_deg, self.distance, self.centre):
+                    names.append(name)
+                    break
+            else:
+                groups.append(([name], pose))
+        # Rank by fitness and match agreement first, then refine the best few.
+        quick = [self.features(pose) for _, pose in groups]
+        fitness_at = VERIFICATION_FEATURES.index("fitness")
+        matches_at = VERIFICATION_FEATURES.index("match_inlier_ratio")
+        order = sorted(range(len(groups)), key=lambda i: -(quick[i][fitness_at] + quick[i][matches_at]))
+        refined_set = set(order[: config.refine_candidates])
+        verified = [self.refine(pose) if i in refined_set else pose for i, (_, pose) in enumerate(groups)]
+        base = [self.features(pose) for pose in verified]
+        estimator_count = max(1, sum(name in CANDIDATE_ESTIMATORS for name, _ in candidates))
+        hypotheses = []
+        for i, (names, pose) in enumerate(groups):
+            rivals = [base[j][fitness_at] for j in range(len(groups)) if j != i]
+            margin = base[i][fitness_at] - max(rivals) if rivals else 0.0
+            agreement = sum(name in CANDIDATE_ESTIMATORS for name in names) / estimator_count
+            features = self.features(verified[i], agreement=agreement, margin=margin)
+            hypotheses.append(
+                Hypothesis(
+                    estimators=tuple(names),
+                    transformation=pose,
+                    verified_transformation=verified[i],
+                    features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
+                    confidence=logistic_confidence(features, config),
+                    refined=i in refined_set,
+                )
+            )
+        ranked = sorted(range(len(hypotheses)), key=lambda i: (-hypotheses[i].confidence, i))
+        ordered = tuple(hypotheses[i] for i in ranked)
+        return VerificationResult(best=ordered[0], hypotheses=ordered, candidate_count=len(candidates))
+
+    def pose_within_verified(self, pose: np.ndarray, hypothesis: Hypothesis) -> bool:
+        """Whether ``pose`` lies within ``same_pose_deg`` (and d) of the hypothesis' verified pose."""
+        return _same_pose(
+            pose, hypothesis.verified_transformation, self.config.same_pose_deg, self.distance, self.centre
+        )
+
+    def confidence_at(self, pose: np.ndarray, hypothesis: Hypothesis) -> float:
+        """Calibrated confidence of ``pose`` (e.g. the hypothesis after the full ICP), with the
+        hypothesis' agreement and margin."""
+        features = self.features(pose, hypothesis.features["agreement"], hypothesis.features["margin"])
+        return logistic_confidence(features, self.config)
+
+
+def _subset(points: np.ndarray, count: int, generator: np.random.Generator) -> np.ndarray:
+    """(min(N, count), 3) seeded uniform subset of (N, 3) points, in their order."""
+    if len(points) <= count:
+        return points
+    return points[np.sort(generator.choice(len(points), count, replace=False))]
