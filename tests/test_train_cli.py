@@ -180,3 +180,19 @@ def test_plot_marks_where_a_resumed_run_changed_its_pairs(tmp_path):
     # a resume with unchanged pairs is no change; the switch to any orientation is one
     assert [t for t, _ in changes] == [0.0, 6.0] and "any orientation" in changes[1][1]
     assert plot_curves(log, tmp_path / "curves.png").stat().st_size > 10_000
+
+
+def test_geometry_on_the_device_trains_like_geometry_in_the_workers(tmp_path):
+    """--geometry-on-device (the torch port) gives the v3 run the same losses, step for step."""
+    if not DATA_ROOT.is_dir():
+        pytest.skip(f"shared data not found at {DATA_ROOT}")
+    options = [*COMMON, "--max-steps", "3", "--log-every", "1", "--threads", "1"]
+    options[options.index("tiny")] = "tiny_v3"
+    logs = []
+    for name, extra in (("workers", []), ("device", ["--geometry-on-device"])):
+        _run([sys.executable, "-m", "training.train", "--out", str(tmp_path / name), *options, *extra])
+        logs.append([r for r in _log(tmp_path / name) if r["type"] in ("train", "val")])
+    assert [r["type"] for r in logs[0]] == [r["type"] for r in logs[1]] and len(logs[0]) >= 4
+    for worker_record, device_record in zip(*logs):
+        key = "loss" if worker_record["type"] == "train" else "val_loss"
+        assert device_record[key] == pytest.approx(worker_record[key], rel=1e-4, abs=1e-5)

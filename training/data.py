@@ -386,6 +386,7 @@ class PairDataset(_TorchDataset):
         normalization_config: NormalizationConfig = NormalizationConfig(),
         name: str = "train",
         any_orientation: bool = False,
+        geometry_on_device: bool = False,
     ) -> None:
         shapes = np.asarray(shapes, dtype=np.float32)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < SOURCE_POINTS:
@@ -396,6 +397,9 @@ class PairDataset(_TorchDataset):
         self.normalization_config = normalization_config
         self.name = name
         self.any_orientation = bool(any_orientation)
+        # True: samples carry points only; training computes the geometry for the whole batch
+        # on its device (training/geometry_torch.py), where workers could not keep a GPU fed.
+        self.geometry_on_device = bool(geometry_on_device)
 
     def __len__(self) -> int:
         return len(self.shapes)
@@ -414,6 +418,8 @@ class PairDataset(_TorchDataset):
 
     def __getitem__(self, key) -> dict:
         key = PairKey(*key) if not isinstance(key, PairKey) else key
+        if self.geometry_on_device:
+            return pair_to_sample(self.pair(key), None, None, key)
         last_error: Exception | None = None
         for attempt in range(4):
             pair = self.pair(key, attempt)
@@ -428,15 +434,28 @@ class PairDataset(_TorchDataset):
 
 
 def pair_to_sample(pair: Pair, source_geometry, target_geometry, key: PairKey | None = None) -> dict:
-    """Flatten a pair and its two :class:`PointGeometry` into the dataset's sample dict."""
+    """Flatten a pair and its two :class:`PointGeometry` into the dataset's sample dict.
+
+    With ``source_geometry`` and ``target_geometry`` None the sample holds the network-frame
+    points only (no ``*_edges`` / ``*_normals``): the geometry is computed on the device.
+    """
     norm = pair.normalization
+    if source_geometry is None or target_geometry is None:
+        geometry = {
+            "src_points": pair.source_network.astype(np.float32),
+            "tgt_points": pair.target_network.astype(np.float32),
+        }
+    else:
+        geometry = {
+            "src_edges": source_geometry.edges,
+            "src_points": source_geometry.points.astype(np.float32),
+            "src_normals": source_geometry.normals.astype(np.float32),
+            "tgt_edges": target_geometry.edges,
+            "tgt_points": target_geometry.points.astype(np.float32),
+            "tgt_normals": target_geometry.normals.astype(np.float32),
+        }
     return {
-        "src_edges": source_geometry.edges,
-        "src_points": source_geometry.points.astype(np.float32),
-        "src_normals": source_geometry.normals.astype(np.float32),
-        "tgt_edges": target_geometry.edges,
-        "tgt_points": target_geometry.points.astype(np.float32),
-        "tgt_normals": target_geometry.normals.astype(np.float32),
+        **geometry,
         "gt_match_src": pair.gt_match_src,
         "gt_match_tgt": pair.gt_match_tgt,
         "T_gt": pair.T_gt_network.astype(np.float32),

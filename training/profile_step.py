@@ -1,8 +1,8 @@
 """Time and peak memory of one training step on the CPU (forward, loss, backward, Adam).
 
-    python -m training.profile_step --preset small --batch-size 8 --points 1024 [--threads 2]
+    python -m training.profile_step --preset small --batch-size 8 --points 1024 [--threads 2] [--protocol partial]
 
-Builds one batch of noisy pairs (clean-size clouds: ``--points`` per cloud) from synthetic
+Builds one batch of pairs (``--protocol``, noisy by default; ``--points`` per source cloud) from synthetic
 shapes, runs a warm-up step and a measured step, and prints the step time and the process's
 peak resident memory (``ru_maxrss``) before and after, in a fresh process per call so peaks
 do not mix. ``--json`` prints one JSON line instead.
@@ -52,18 +52,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--points", type=int, default=1024)
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--protocol", default="noisy", choices=["clean", "noisy", "partial"],
+                        help="pair protocol (partial: 75 %% of --points survive in each cloud)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
+    config = ModelConfig.preset(args.preset)
+    geometry = config.geometry()  # the geometry this network reads
     samples = []
     for _ in range(args.batch_size):
-        pair = make_pair(synthetic_shape(rng, 1024), "noisy", rng, points_per_cloud=args.points)
-        samples.append(pair_to_sample(pair, compute_geometry(pair.source_network), compute_geometry(pair.target_network)))
+        pair = make_pair(synthetic_shape(rng, 1024), args.protocol, rng, points_per_cloud=args.points)
+        samples.append(pair_to_sample(
+            pair, compute_geometry(pair.source_network, geometry), compute_geometry(pair.target_network, geometry)
+        ))
     batch = default_collate(samples)
-    model = LoGDescMatcher(ModelConfig.preset(args.preset))
+    model = LoGDescMatcher(config)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
 
     def step() -> float:
@@ -83,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         "preset": args.preset,
         "batch_size": args.batch_size,
         "points_per_cloud": args.points,
+        "protocol": args.protocol,
         "threads": torch.get_num_threads(),
         "warm_up_step_s": round(warm_up, 2),
         "step_s": round(measured, 2),

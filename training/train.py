@@ -77,6 +77,7 @@ from training.data import (
 from training.evaluate import register_from_log_assignment
 from training.losses import assignment_nll, descriptor_infonce, gap_loss
 from training.model import LoGDescMatcher
+from training.geometry_torch import invariant_geometry
 from training.sinkhorn import log_optimal_transport
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -114,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--workers", type=int, default=None,
                      help="DataLoader workers (default: 2 on CPU, min(12, cores-2) on CUDA)")
     run.add_argument("--threads", type=int, default=None, help="torch.set_num_threads in the main process")
+    run.add_argument("--geometry-on-device", action="store_true",
+                     help="compute the geometry per batch on the training device (torch port of the NumPy "
+                          "reference; invariant networks only) instead of in the data-loader workers")
     run.add_argument("--max-steps", type=int, default=None, help="stop at this global step")
     run.add_argument("--max-minutes", type=float, default=None,
                      help="stop after this many minutes of this invocation (then resume)")
@@ -214,11 +218,19 @@ def _worker_init(_worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
-def to_device(batch: dict, device: torch.device) -> dict:
-    return {
+def to_device(batch: dict, device: torch.device, geometry: GeometryConfig | None = None) -> dict:
+    """The batch on ``device``; a batch of bare points (``--geometry-on-device``) gets its
+    edges and normals computed there (:func:`training.geometry_torch.invariant_geometry`)."""
+    batch = {
         name: value.to(device, non_blocking=True) if isinstance(value, torch.Tensor) else value
         for name, value in batch.items()
     }
+    if "src_edges" not in batch:
+        if geometry is None:
+            raise ValueError("a batch without geometry needs the geometry config")
+        for prefix in ("src", "tgt"):
+            batch[f"{prefix}_edges"], batch[f"{prefix}_normals"] = invariant_geometry(batch[f"{prefix}_points"], geometry)
+    return batch
 
 
 def forward(model: LoGDescMatcher, batch: dict, amp: bool) -> dict:
@@ -371,7 +383,7 @@ def truncate_log(path: Path, step: int) -> None:
 
 
 # ----------------------------------------------------------------------------- validation
-def validate(model, loader, device, args, stop: StopFlag) -> dict | None:
+def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConfig | None = None) -> dict | None:
     """Validation loss, mutual-match P/A/R and FSR rotation error on the fixed pairs.
 
     Returns None if a stop signal arrived mid-way (the result would be partial).
@@ -384,7 +396,7 @@ def validate(model, loader, device, args, stop: StopFlag) -> dict | None:
             if stop:
                 model.train()
                 return None
-            batch = to_device(batch, device)
+            batch = to_device(batch, device, geometry)
             outputs = forward(model, batch, args.amp and device.type == "cuda")
             log_assignment = outputs["log_assignment"].float()
             count = log_assignment.shape[0]
@@ -535,11 +547,16 @@ def train(args) -> int:
         early_steps=args.early_points_steps,
     )
     geometry = model_config.geometry()
+    if args.geometry_on_device and geometry.edge_layout != "invariant":
+        raise SystemExit("--geometry-on-device: only the invariant networks' geometry has a torch port")
+    on_device = bool(args.geometry_on_device)
     train_set = PairDataset(
-        shapes.train, args.seed, geometry_config=geometry, name="train", any_orientation=args.any_orientation
+        shapes.train, args.seed, geometry_config=geometry, name="train", any_orientation=args.any_orientation,
+        geometry_on_device=on_device,
     )
     val_set = PairDataset(
-        shapes.val, args.seed, geometry_config=geometry, name="val", any_orientation=args.any_orientation
+        shapes.val, args.seed, geometry_config=geometry, name="val", any_orientation=args.any_orientation,
+        geometry_on_device=on_device,
     )
     sampler = TrainBatchSampler(len(train_set), args.batch_size, schedule, args.seed, start_step=progress.step)
     loader_options = dict(
@@ -592,7 +609,7 @@ def train(args) -> int:
     def run_validation() -> None:
         if val_loader is None:
             return
-        result = validate(step_model, val_loader, device, args, stop)
+        result = validate(step_model, val_loader, device, args, stop, geometry)
         if result is None:
             return
         value = result[args.best_metric]
@@ -643,7 +660,7 @@ def train(args) -> int:
                     break
                 raise
             compute_start = time.perf_counter()
-            batch = to_device(batch, device)
+            batch = to_device(batch, device, geometry)
             outputs = forward(step_model, batch, amp)
             terms = loss_terms(outputs, batch, args)
             optimizer.zero_grad(set_to_none=True)
