@@ -1,0 +1,158 @@
+"""Verified hypotheses, the success flag and the runtime configuration."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from logdesc_rt import Registrar
+from logdesc_rt.config import (
+    VERIFICATION_FEATURES,
+    FsrConfig,
+    RefinementConfig,
+    RuntimeConfig,
+    VerificationConfig,
+)
+from logdesc_rt.demo import make_demo_pair
+from logdesc_rt.metrics import rotation_error_deg
+from logdesc_rt.verification import PoseVerifier, candidate_poses, logistic_confidence
+
+from .bunny import bunny_pair
+from .conftest import SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    return Registrar()
+
+
+@pytest.fixture(scope="module")
+def demo_pair():
+    return make_demo_pair()
+
+
+def _turned(pose: np.ndarray, degrees: float, about: np.ndarray) -> np.ndarray:
+    """``pose`` followed by a turn of ``degrees`` about the x axis through ``about``."""
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("x", degrees, degrees=True).as_matrix()
+    turn[:3, 3] = about - turn[:3, :3] @ about
+    return turn @ pose
+
+
+def test_candidates_recover_an_exact_pose_despite_outliers():
+    rng = np.random.default_rng(5)
+    source = rng.uniform(-1, 1, size=(200, 3))
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()
+    truth[:3, 3] = [0.2, -0.1, 0.3]
+    target = source @ truth[:3, :3].T + truth[:3, 3]
+    target[:60] = rng.uniform(-1, 1, size=(60, 3))  # 30 % wrong matches
+    candidates = dict(candidate_poses(source, target, np.full(200, 0.5)))
+    assert set(candidates) == {"fsr", "ransac", "svd", "top_k"}
+    for name in ("fsr", "ransac"):
+        assert rotation_error_deg(candidates[name][:3, :3], truth[:3, :3]) < 1e-4, name  # arccos resolves ~1e-6 deg
+    # Plain SVD fits the wrong matches too: the reason it is only one candidate among several.
+    assert rotation_error_deg(candidates["svd"][:3, :3], truth[:3, :3]) > 1.0
+
+
+def test_confidence_separates_the_true_pose_from_a_wrong_one(demo_pair):
+    """On the demo pair the true pose is confidently right, the same pose turned 90 deg is not."""
+    source, target, truth = demo_pair.source, demo_pair.target, demo_pair.true_transformation
+    scale = 1.0  # the demo pair lives in the unit sphere
+    verifier = PoseVerifier(source, target, source[:3], target[:3], np.ones(3), scale)
+    config = VerificationConfig()
+    right = logistic_confidence(verifier.features(truth, agreement=1.0), config)
+    wrong = logistic_confidence(verifier.features(_turned(truth, 90.0, target.mean(axis=0)), agreement=1.0), config)
+    assert right >= config.success_threshold > wrong
+    assert len(verifier.features(truth)) == len(VERIFICATION_FEATURES)
+
+
+def test_in_range_pair_is_a_success(registrar, demo_pair):
+    result = registrar.register(demo_pair.source, demo_pair.target)
+    assert result.success and result.confidence >= result.config.verification.success_threshold
+    assert rotation_error_deg(result.rotation, demo_pair.true_transformation[:3, :3]) < 5.0
+    assert result.pose_estimator in {"fsr", "ransac", "svd", "top_k"}
+    best = result.verification.hypotheses[0]
+    assert result.pose_estimator in best.estimators
+    summary = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert summary["success"] is True and 0.0 <= summary["confidence"] <= 1.0
+    assert summary["config"]["estimator"] == "auto"
+
+
+@pytest.fixture(scope="module")
+def bunny_000_180():
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return bunny_pair(SHARED_DATA, "bun000", "bun180")
+
+
+@pytest.mark.parametrize("refine", [None, "point_to_plane"])
+def test_a_wrong_pose_on_real_scans_is_not_a_success(registrar, bunny_000_180, refine):
+    """bun000 -> bun180 (a half turn, beyond the model's range): the pose is wrong, and says so.
+
+    Before the flag existed this pair returned a pose 157 deg wrong with nothing to tell.
+    """
+    source, target, truth = bunny_000_180
+    result = registrar.register(source, target, refine=refine)
+    assert rotation_error_deg(result.rotation, truth[:3, :3]) > 5.0
+    assert not result.success
+    assert result.confidence < result.config.verification.success_threshold
+
+
+def test_a_right_pose_on_real_scans_is_a_success(registrar):
+    """bun045 -> bun090 with ICP: the verified RANSAC hypothesis refines to the truth."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    source, target, truth = bunny_pair(SHARED_DATA, "bun045", "bun090")
+    result = registrar.register(source, target, refine="point_to_plane")
+    assert rotation_error_deg(result.rotation, truth[:3, :3]) < 1.0
+    assert result.success
+
+
+def test_an_initial_guess_joins_the_candidates(registrar, demo_pair):
+    truth = demo_pair.true_transformation
+    result = registrar.register(demo_pair.source, demo_pair.target, init=truth)
+    names = [name for h in result.verification.hypotheses for name in h.estimators]
+    assert "init" in names
+    with pytest.raises(ValueError, match="init"):
+        registrar.register(demo_pair.source, demo_pair.target, init=np.eye(3))
+
+
+# ----------------------------------------------------------------------------- configuration
+def test_runtime_config_round_trips_and_merges_partial_dicts():
+    config = RuntimeConfig()
+    assert RuntimeConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    changed = RuntimeConfig.from_dict({"fsr": {"iterations": 9}, "refinement": {"method": "point_to_point"}})
+    assert changed.fsr == dataclasses.replace(FsrConfig(), iterations=9)
+    assert changed.refinement == RefinementConfig(method="point_to_point")
+    with pytest.raises(ValueError, match="unknown keys"):
+        RuntimeConfig.from_dict({"fsr": {"tau": 0.1}})
+    with pytest.raises(ValueError, match="unknown keys"):
+        RuntimeConfig.from_dict({"icp": {}})
+    with pytest.raises(ValueError, match="estimator"):
+        RuntimeConfig(estimator="magic")
+    seeded = config.with_seed(7)
+    assert seeded.fsr.seed == seeded.ransac.seed == seeded.verification.seed == 7
+
+
+def test_registrar_and_call_configs_are_used_and_reported(demo_pair):
+    config = RuntimeConfig.from_dict({"estimator": "ransac", "ransac": {"max_iterations": 500}})
+    registrar = Registrar(config=config, max_points=512)
+    assert registrar.config.subsampling.max_points == 512 == registrar.max_points
+    assert registrar.config.matching == registrar.manifest.matching  # the model's, resolved
+    result = registrar.register(demo_pair.source, demo_pair.target, seed=4, refine="point_to_plane")
+    assert result.pose_estimator == "ransac" and result.refinement == "point_to_plane"
+    assert result.config.ransac.max_iterations == 500 and result.config.ransac.seed == 4
+    assert result.subsampled and result.source_points_used == 512
+    # A per-call config replaces the Registrar's; keyword arguments still win over it.
+    call = registrar.register(
+        demo_pair.source, demo_pair.target, config=RuntimeConfig(), estimator="svd", refine=None
+    )
+    assert call.pose_estimator == "svd" and call.config.subsampling.max_points == 1024
+    assert call.source_points_used == len(demo_pair.source)
+    with pytest.raises(ValueError, match="estimator"):
+        registrar.register(demo_pair.source, demo_pair.target, estimator="magic")
