@@ -262,6 +262,47 @@ def flag_quality(claimed: np.ndarray, right: np.ndarray) -> dict[str, float]:
     }
 
 
+def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
+    """The report: what the flag was calibrated on, the fitted values, the flag on those pairs."""
+    config = payload["verification_config"]
+    lines = [
+        "# Success-flag calibration (validation pairs only)",
+        "",
+        "`python benchmarks/calibrate_success.py collect && python benchmarks/calibrate_success.py fit`",
+        "",
+        "Bundled model small-h100-v2. Pairs: the training run's held-out *validation* shapes",
+        "(5 % of ModelNet10 train and of the ModelNet40 train subset; never ModelNet10's test split),",
+        "\"partial\" protocol, both clouds turned by one random rotation; and the Stanford Bunny scan",
+        "pairs that `benchmarks/bunny.py` does **not** benchmark (overlap < 0.3). Groups",
+        "(`benchmarks/calibrate_success.py` docstring): " + ", ".join(f"{g} ({n} pairs)" for g, n in pairs_per_group.items()) + ".",
+        "",
+        "Right = rotation error < 5 deg and translation error < 5 % of the larger radius.",
+        "Logistic regression (L2, every group the same total weight) on every hypothesis; the",
+        f"threshold is the lowest with precision >= {payload['target_precision']:.0%} on the chosen hypotheses, raised above",
+        "every wrong real-scan pose.",
+        "",
+        "| feature | weight |",
+        "| --- | ---: |",
+        *[f"| {name} | {weight:.4f} |" for name, weight in zip(payload["features"], config["weights"], strict=True)],
+        f"| (bias) | {config['bias']:.4f} |",
+        "",
+        f"Success threshold on the confidence: **{config['success_threshold']:.4f}**.",
+        "",
+        "The flag on the calibration pairs (in-sample: an optimistic estimate). `refined`: the",
+        "verified (ICP-refined) pose, what `refine=...` returns; `unrefined`: the estimator's own",
+        "pose, claimed only within `same_pose_deg` of its verified pose.",
+        "",
+        "| mode | group | pairs | right | claimed | precision | recall |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for mode, groups in payload["flag_on_calibration_pairs"].items():
+        for group, q in groups.items():
+            precision = "-" if q["precision"] != q["precision"] else f"{q['precision']:.3f}"
+            recall = "-" if q["recall"] != q["recall"] else f"{q['recall']:.3f}"
+            lines.append(f"| {mode} | {group} | {q['pairs']} | {q['right']} | {q['claimed']} | {precision} | {recall} |")
+    return "\n".join(lines) + "\n"
+
+
 def fit(groups: list[str]) -> None:
     import dataclasses
 
@@ -333,6 +374,7 @@ def fit(groups: list[str]) -> None:
         "flag_on_calibration_pairs": summary,
     }
     REPORT.with_suffix(".json").write_text(json.dumps(payload, indent=1))
+    REPORT.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
     print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": threshold}, indent=1))
     for mode in ("refined", "unrefined"):
         for group, quality in summary[mode].items():
