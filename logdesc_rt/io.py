@@ -5,6 +5,12 @@ shape (N, 3), in the file's own units (metres for most scanners); colours, norma
 and other attributes are ignored. :func:`write_point_cloud` writes such an array so that
 reading it back gives the same float64 values bit for bit, in every format.
 
+Per-point attributes (colours, normals, intensity, confidence, ...): :func:`read_point_attributes`
+reads the other scalar vertex properties of a PLY file, and :func:`write_point_cloud` writes
+``attributes`` into every format but OFF (PLY properties in their own types, PCD fields,
+extra text / NPY columns). :func:`transform_attributes` turns normals with a pose. So
+``logdesc-rt register --write-aligned`` keeps what a PLY input had.
+
 Every problem with a file (missing, a directory, empty, unsupported suffix, corrupt or
 truncated content, no points) raises :class:`~logdesc_rt.errors.PointCloudFileError`
 whose message starts with the path. Coordinates that parse but are unusable (NaN, inf,
@@ -117,7 +123,55 @@ def read_point_cloud(path: str | os.PathLike) -> np.ndarray:
     return as_points(coordinates, name=str(path))
 
 
-def write_point_cloud(path: str | os.PathLike, points) -> None:
+# Attribute names that hold a normal's components (PLY's and PCL's spellings).
+NORMAL_NAMES: tuple[tuple[str, str, str], ...] = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+
+
+def read_point_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Per-point attributes of a point-cloud file, besides x, y, z.
+
+    PLY: every scalar property of the ``vertex`` element (e.g. nx ny nz, red green blue,
+    alpha, intensity, confidence), each an (N,) array in its declared type, in header order.
+    Other formats: an empty dict (their extra columns or fields are not read).
+
+    Raises:
+        PointCloudFileError: as :func:`read_point_cloud`.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        return {}
+    _check_readable_file(path)
+    try:
+        with path.open("rb") as file:
+            header = ply.read_header(file)
+            vertex = header.element("vertex")
+            if vertex is None:
+                return {}
+            names = [p.name for p in vertex.properties if not p.is_list and p.name not in ("x", "y", "z")]
+            if not names:
+                return {}
+            values = ply.read_scalar_properties(file, header, "vertex", names)
+    except _PARSE_ERRORS as error:
+        raise _file_error(path, f"cannot parse as PLY: {error}") from error
+    except OSError as error:
+        raise _file_error(path, f"cannot read: {error.strerror or error}") from error
+    return dict(zip(names, values, strict=True))
+
+
+def transform_attributes(attributes: dict[str, np.ndarray], rotation: np.ndarray) -> dict[str, np.ndarray]:
+    """``attributes`` with every normal triplet (nx ny nz, normal_x normal_y normal_z) turned
+    by the (3, 3) ``rotation``; other attributes (colours, intensity) unchanged."""
+    moved = dict(attributes)
+    for triplet in NORMAL_NAMES:
+        if all(name in attributes for name in triplet):
+            normals = np.stack([np.asarray(attributes[name], dtype=np.float64) for name in triplet], axis=1)
+            turned = normals @ np.asarray(rotation, dtype=np.float64).T
+            for column, name in enumerate(triplet):
+                moved[name] = turned[:, column].astype(np.asarray(attributes[name]).dtype)
+    return moved
+
+
+def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.ndarray] | None = None) -> None:
     """Write an (N, 3) point cloud; the format follows the suffix (:data:`SUPPORTED_SUFFIXES`).
 
     Every format stores float64 values exactly: PLY as binary little-endian ``double``
@@ -129,10 +183,16 @@ def write_point_cloud(path: str | os.PathLike, points) -> None:
     Args:
         path: the file to write; its folder must exist.
         points: array-like (N, 3) of real numbers, N >= 1.
+        attributes: optional name -> (N,) real array (e.g. from :func:`read_point_attributes`),
+            written after x, y, z: PLY properties in the array's own type, PCD ascii fields,
+            extra columns of XYZ/TXT/CSV (named in the CSV header) and NPY (as float64). OFF
+            has no place for them: PointCloudFileError.
 
     Raises:
-        PointCloudFileError: unsupported suffix, or the file cannot be written.
+        PointCloudFileError: unsupported suffix, the file cannot be written, or attributes
+            for OFF.
         PointCloudShapeError, NonFinitePointsError, TooFewPointsError: bad ``points``.
+        ValueError: an attribute that is not an (N,) real array, or has a bad name.
     """
     path = Path(path)
     writer = _WRITERS.get(path.suffix.lower())
@@ -142,10 +202,93 @@ def write_point_cloud(path: str | os.PathLike, points) -> None:
             f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}",
         )
     points = as_points(points, name="points")
+    extra = _check_attributes(attributes or {}, len(points))
+    if extra and path.suffix.lower() == ".off":
+        raise _file_error(path, "OFF has no per-point attributes; write PLY, PCD, XYZ/TXT/CSV or NPY instead")
     try:
-        writer(path, points)
+        if extra:
+            _ATTRIBUTE_WRITERS[path.suffix.lower()](path, points, extra)
+        else:
+            writer(path, points)
     except OSError as error:
         raise _file_error(path, f"cannot write: {error.strerror or error}") from error
+
+
+def _check_attributes(attributes: dict, count: int) -> dict[str, np.ndarray]:
+    checked = {}
+    for name, values in attributes.items():
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name) or name in ("x", "y", "z"):
+            raise ValueError(f"attribute name {name!r}: expected an identifier other than x, y, z")
+        array = np.asarray(values)
+        if array.shape != (count,) or not (np.issubdtype(array.dtype, np.number) and not np.issubdtype(array.dtype, np.complexfloating)):
+            raise ValueError(f"attribute {name!r}: expected ({count},) real numbers, got {array.dtype} {array.shape}")
+        checked[name] = array
+    return checked
+
+
+_PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+                   "f4": "float", "f8": "double"}
+
+
+def _write_ply_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    """Binary little-endian PLY: double x, y, z, then each attribute in its own type."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    for name, values in attributes.items():
+        code = values.dtype.str[1:]
+        if code not in _PLY_TYPE_NAMES:  # int64, float16, ...: widest PLY type of the kind
+            code = "f8" if values.dtype.kind == "f" else ("i4" if values.dtype.kind == "i" else "u4")
+        fields.append((name, "<" + code))
+    table = np.empty(len(points), dtype=fields)
+    for column, axis in enumerate("xyz"):
+        table[axis] = points[:, column]
+    for name, values in attributes.items():
+        table[name] = values
+    lines = ["ply", "format binary_little_endian 1.0", "comment written by logdesc-rt",
+             f"element vertex {len(points)}"]
+    lines += [f"property {_PLY_TYPE_NAMES[code[1:]]} {name}" for name, code in fields]
+    lines.append("end_header")
+    with path.open("wb") as file:
+        file.write(("\n".join(lines) + "\n").encode("ascii"))
+        file.write(table.tobytes())
+
+
+def _write_pcd_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    """ascii PCD: x y z as F 8, float attributes as F 8, integer ones as I/U 8."""
+    names = ["x", "y", "z", *attributes]
+    types = ["F", "F", "F"] + ["F" if v.dtype.kind == "f" else ("U" if v.dtype.kind == "u" else "I") for v in attributes.values()]
+    count = len(points)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format (written by logdesc-rt)\n"
+        f"VERSION 0.7\nFIELDS {' '.join(names)}\nSIZE {' '.join(['8'] * len(names))}\n"
+        f"TYPE {' '.join(types)}\nCOUNT {' '.join(['1'] * len(names))}\n"
+        f"WIDTH {count}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {count}\nDATA ascii\n"
+    )
+    path.write_text(header + _attribute_rows(points, attributes, " "), encoding="ascii")
+
+
+def _attribute_rows(points: np.ndarray, attributes: dict[str, np.ndarray], separator: str) -> str:
+    """Text rows: x y z then each attribute; floats as the shortest exact decimal, ints as ints."""
+
+    def formatted(column: np.ndarray) -> list[str]:
+        if column.dtype.kind == "f":
+            return [repr(value) for value in column.astype(np.float64).tolist()]
+        return [str(value) for value in column.tolist()]
+
+    columns = [formatted(points[:, axis]) for axis in range(3)]
+    columns += [formatted(np.asarray(values)) for values in attributes.values()]
+    return "".join(separator.join(row) + "\n" for row in zip(*columns))
+
+
+def _write_text_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    separator = "," if path.suffix.lower() == ".csv" else " "
+    header = ",".join(["x", "y", "z", *attributes]) + "\n" if separator == "," else ""
+    path.write_text(header + _attribute_rows(points, attributes, separator), encoding="ascii")
+
+
+def _write_npy_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    table = np.column_stack([points, *[np.asarray(v, dtype=np.float64) for v in attributes.values()]])
+    with path.open("wb") as file:
+        np.save(file, table, allow_pickle=False)
 
 
 def _check_readable_file(path: Path) -> None:
@@ -603,6 +746,14 @@ _READERS: dict[str, Callable[[Path], np.ndarray]] = {
     ".csv": _read_delimited_text,
     ".npy": _read_npy,
     ".off": _read_off,
+}
+_ATTRIBUTE_WRITERS: dict[str, Callable[[Path, np.ndarray, dict[str, np.ndarray]], None]] = {
+    ".ply": _write_ply_with_attributes,
+    ".pcd": _write_pcd_with_attributes,
+    ".xyz": _write_text_with_attributes,
+    ".txt": _write_text_with_attributes,
+    ".csv": _write_text_with_attributes,
+    ".npy": _write_npy_with_attributes,
 }
 _WRITERS: dict[str, Callable[[Path, np.ndarray], None]] = {
     ".ply": _write_ply,

@@ -823,3 +823,68 @@ def test_fuzz_corrupt_files_raise_only_logdesc_errors(tmp_path, suffix):
         assert np.isfinite(points).all()
 
     check()
+
+
+# ----------------------------------------------------------------------------- attributes
+def _attributes(count: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(size=(count, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return {
+        "nx": normals[:, 0].astype(np.float32),
+        "ny": normals[:, 1].astype(np.float32),
+        "nz": normals[:, 2].astype(np.float32),
+        "red": rng.integers(0, 256, count).astype(np.uint8),
+        "intensity": rng.random(count),
+    }
+
+
+def test_ply_keeps_attributes_in_their_types(tmp_path):
+    from logdesc_rt.io import read_point_attributes
+
+    points = np.random.default_rng(90).normal(size=(40, 3))
+    attributes = _attributes(40, 91)
+    write_point_cloud(tmp_path / "cloud.ply", points, attributes)
+    assert np.array_equal(read_point_cloud(tmp_path / "cloud.ply"), points)
+    back = read_point_attributes(tmp_path / "cloud.ply")
+    assert list(back) == list(attributes)
+    for name, values in attributes.items():
+        assert back[name].dtype == values.dtype and np.array_equal(back[name], values), name
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".xyz", ".csv", ".npy"])
+def test_other_formats_write_attributes_as_extra_columns(tmp_path, suffix):
+    points = np.random.default_rng(92).normal(size=(30, 3))
+    attributes = _attributes(30, 93)
+    path = tmp_path / f"cloud{suffix}"
+    write_point_cloud(path, points, attributes)
+    assert np.array_equal(read_point_cloud(path), points)  # x, y, z still read exactly
+    if suffix == ".csv":
+        assert path.read_text().splitlines()[0] == "x,y,z,nx,ny,nz,red,intensity"
+    if suffix == ".npy":
+        assert np.load(path).shape == (30, 8)
+
+
+def test_attributes_are_checked_and_off_refuses_them(tmp_path):
+    points = np.zeros((5, 3)) + np.arange(5)[:, None]
+    with pytest.raises(PointCloudFileError, match="OFF"):
+        write_point_cloud(tmp_path / "cloud.off", points, {"intensity": np.ones(5)})
+    with pytest.raises(ValueError, match="intensity"):
+        write_point_cloud(tmp_path / "cloud.ply", points, {"intensity": np.ones(4)})
+    with pytest.raises(ValueError, match="name"):
+        write_point_cloud(tmp_path / "cloud.ply", points, {"x": np.ones(5)})
+
+
+def test_normals_turn_with_the_pose_and_colours_do_not():
+    from scipy.spatial.transform import Rotation
+
+    from logdesc_rt.io import transform_attributes
+
+    attributes = _attributes(20, 94)
+    rotation = Rotation.from_euler("xyz", [10, 50, -30], degrees=True).as_matrix()
+    moved = transform_attributes(attributes, rotation)
+    normals = np.stack([attributes[n] for n in ("nx", "ny", "nz")], axis=1).astype(np.float64)
+    turned = np.stack([moved[n] for n in ("nx", "ny", "nz")], axis=1)
+    assert np.allclose(turned, normals @ rotation.T, atol=1e-6)
+    assert moved["nx"].dtype == np.float32
+    assert np.array_equal(moved["red"], attributes["red"]) and np.array_equal(moved["intensity"], attributes["intensity"])
