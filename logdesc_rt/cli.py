@@ -2,13 +2,27 @@
 
 argparse (standard library) is enough for three subcommands and keeps the runtime's
 dependencies at numpy, scipy, pykdtree and onnxruntime.
+
+Everything that can be checked before the work is checked first (input files readable,
+output folders and formats, matplotlib for ``--plot``, ``--config`` and ``--init`` files), so
+a mistake costs no registration. Progress goes to stderr (``--quiet`` silences it); results
+go to stdout.
+
+Exit codes (``register`` and ``demo``):
+
+    0  the registration succeeded (``success`` is true)
+    2  an error: bad arguments, unreadable or invalid input, unwritable output
+    3  the registration ran but is not a success (the pose is printed and written anyway);
+       ``--allow-failure`` turns this into 0
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,64 +30,225 @@ import numpy as np
 from .errors import LogdescError
 from .metrics import rotation_error_deg
 
+EXIT_OK = 0
+EXIT_ERROR = 2
+EXIT_NOT_SUCCESS = 3
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+ESTIMATOR_HELP = (
+    "auto (default): every candidate pose (FSR, RANSAC, SVD, top-k) is verified on the full clouds "
+    "and the best kept; fsr: the paper's farthest-sampling estimator; svd: confidence-weighted "
+    "least squares on all matches; ransac: 3-point RANSAC. The chosen pose is always verified."
+)
+EPILOG = """\
+formats: PLY, PCD, XYZ/TXT/CSV (x y z in the first columns), NPY ((N, 3+) array), OFF; by suffix.
 
-def _registrar(args):
+working size: clouds larger than the model's training size (1024 points) are subsampled to it
+(farthest-point sampling) for the networks; verification, ICP, fitness and --write-aligned use
+the full clouds. Memory grows with the square of the working size (about 0.4 GB at 1024).
+
+success: the pose was verified on the full clouds and the calibrated confidence reached its
+threshold (calibrated on validation pairs to be right, i.e. rotation error < 5 degrees and
+translation error < 5 % of the radius, at least 95 % of the time when claimed;
+benchmarks/results/success_calibration.md). The model was trained on relative rotations up to
+45 degrees per axis: beyond that, expect failures, which the flag reports.
+
+exit codes: 0 success; 2 error (nothing registered); 3 registered but not a success
+(--allow-failure: 0).
+"""
+
+
+class _Progress:
+    """Timestamped progress lines on stderr (silent with --quiet)."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.start = time.perf_counter()
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            print(f"[{time.perf_counter() - self.start:6.1f} s] {message}", file=sys.stderr, flush=True)
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+# ----------------------------------------------------------------------------- checks before work
+def _check_input(path: Path, what: str) -> None:
+    from .io import SUPPORTED_SUFFIXES
+
+    if path.suffix.lower() not in SUPPORTED_SUFFIXES:
+        raise ValueError(f"{what} {path}: unsupported suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    if not path.is_file():
+        raise ValueError(f"{what} {path}: no such file")
+    if not os.access(path, os.R_OK):
+        raise ValueError(f"{what} {path}: not readable")
+
+
+def _check_output(path: Path, what: str, suffixes: tuple[str, ...]) -> None:
+    if path.suffix.lower() not in suffixes:
+        raise ValueError(f"{what} {path}: unsupported suffix {path.suffix!r}; supported: {', '.join(suffixes)}")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"{what} {path}: folder {folder} does not exist")
+    if path.is_dir():
+        raise ValueError(f"{what} {path}: is a folder")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ValueError(f"{what} {path}: not writable")
+
+
+def _check_plot(path: Path | None) -> None:
+    if path is None:
+        return
+    _check_output(path, "--plot", PLOT_SUFFIXES)
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as error:
+        raise ValueError("--plot needs matplotlib, which is not installed: pip install matplotlib "
+                         "(or pip install 'logdesc-rt[plot]')") from error
+
+
+def _read_init(path: Path) -> np.ndarray:
+    """A (4, 4) initial guess from .json (a 4x4 list, or {"transformation": ...} as --json
+    prints), .npy, or whitespace-separated text."""
+    from .pose.evaluation import check_rigid_transformation
+
+    if not path.is_file():
+        raise ValueError(f"--init {path}: no such file")
+    try:
+        if path.suffix.lower() == ".json":
+            value = json.loads(path.read_text())
+            matrix = value["transformation"] if isinstance(value, dict) else value
+        elif path.suffix.lower() == ".npy":
+            matrix = np.load(path, allow_pickle=False)
+        else:
+            matrix = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise ValueError(f"--init {path}: cannot read a 4x4 matrix ({error})") from error
+    return check_rigid_transformation(matrix, name=f"--init {path}")
+
+
+def _runtime_config(args):
+    """The RuntimeConfig from --config FILE (partial JSON) with the flags applied over it."""
+    from .config import RuntimeConfig
+
+    config = RuntimeConfig()
+    if getattr(args, "config", None) is not None:
+        try:
+            values = json.loads(Path(args.config).read_text())
+        except OSError as error:
+            raise ValueError(f"--config {args.config}: cannot read ({error.strerror or error})") from error
+        except json.JSONDecodeError as error:
+            raise ValueError(f"--config {args.config}: not JSON ({error})") from error
+        config = RuntimeConfig.from_dict(values)
+    return config
+
+
+def _registrar(args, config=None):
     from .registration import Registrar
 
-    return Registrar(model_dir=args.model, threads=args.threads, max_points=args.max_points)
+    return Registrar(
+        model_dir=args.model,
+        threads=args.threads,
+        max_points=args.max_points,
+        subsampling=getattr(args, "subsampling", None),
+        config=config,
+    )
 
 
-def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, default=None, help="model directory (default: bundled)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
-    parser.add_argument("--max-points", type=int, default=None, help="working size per cloud (default: the model's)")
+def _register_options(args) -> dict:
+    refine = args.refine
+    if refine == "none":
+        refine = None
+    options = {
+        "estimator": args.estimator,
+        "max_correspondence_distance": args.max_correspondence_distance,
+        "seed": args.seed,
+    }
+    if args.refine is not None:
+        options["refine"] = refine
+    return options
 
 
-def _add_registration_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimator", choices=("fsr", "svd", "ransac"), default="fsr")
-    parser.add_argument("--refine", choices=("point_to_point", "point_to_plane"), default=None)
-    parser.add_argument("--max-correspondence-distance", type=float, default=None,
-                        help="for fitness / inlier RMSE / ICP, in the clouds' units (default: 5%% of the radius)")
-    parser.add_argument("--seed", type=int, default=0)
-
-
+# ----------------------------------------------------------------------------- commands
 def _format_matrix(matrix: np.ndarray) -> str:
     return "\n".join(" ".join(f"{value: .8f}" for value in row) for row in matrix)
 
 
-def _command_register(args) -> int:
-    from .io import read_point_cloud, write_point_cloud
+def _summary_line(result) -> str:
+    rmse = "n/a" if not np.isfinite(result.inlier_rmse) else f"{result.inlier_rmse:.4g}"
+    verdict = "SUCCESS" if result.success else "NOT A SUCCESS"
+    return (
+        f"# {verdict}: confidence {result.confidence:.3f}, fitness {result.fitness:.3f}, inlier RMSE {rmse}, "
+        f"{len(result.correspondences)} matches, pose from {result.pose_estimator}, "
+        f"{result.timings['total']:.2f} s"
+    )
 
+
+def _command_register(args) -> int:
+    from .io import read_point_attributes, read_point_cloud, transform_attributes, write_point_cloud
+
+    progress = _Progress(args.quiet)
+    # 1. Everything that can fail without registering.
+    _check_input(args.source, "source")
+    _check_input(args.target, "target")
+    if args.write_aligned is not None:
+        from .io import SUPPORTED_SUFFIXES
+
+        _check_output(args.write_aligned, "--write-aligned", SUPPORTED_SUFFIXES)
+    _check_plot(args.plot)
+    config = _runtime_config(args)
+    init = _read_init(args.init) if args.init is not None else None
+
+    # 2. The work.
+    progress(f"reading {args.source} and {args.target}")
     source = read_point_cloud(args.source)
     target = read_point_cloud(args.target)
-    result = _registrar(args).register(
-        source, target, estimator=args.estimator, refine=args.refine,
-        max_correspondence_distance=args.max_correspondence_distance, seed=args.seed,
-    )
-    if args.write_aligned:
-        write_point_cloud(args.write_aligned, source @ result.rotation.T + result.translation)
-    if args.plot:
+    attributes = read_point_attributes(args.source) if args.write_aligned is not None else {}
+    progress(f"source {len(source)} points, target {len(target)} points; loading the model")
+    registrar = _registrar(args, config)
+    result = registrar.register(source, target, init=init, progress=progress, **_register_options(args))
+    if args.write_aligned is not None:
+        progress(f"writing the aligned source to {args.write_aligned}")
+        moved_attributes = transform_attributes(attributes, result.rotation)
+        if args.write_aligned.suffix.lower() == ".off":
+            moved_attributes = {}
+        write_point_cloud(args.write_aligned, source @ result.rotation.T + result.translation, moved_attributes)
+    if args.plot is not None:
         from .plotting import plot_registration
 
-        plot_registration(source, target, result.transformation, args.plot)
+        progress(f"drawing {args.plot}")
+        plot_registration(source, target, result.transformation, args.plot, result=result)
+
+    # 3. Results on stdout, verdict on stderr and in the exit code.
     if args.json:
-        print(json.dumps(result.to_dict()))
+        print(json.dumps(result.to_dict(), allow_nan=False))
     else:
         print(_format_matrix(result.transformation))
+    print(_summary_line(result), file=sys.stderr)
+    if not result.success:
+        if args.allow_failure:
+            return EXIT_OK
         print(
-            f"# fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}, "
-            f"{len(result.correspondences)} matches, {result.timings['total'] * 1e3:.0f} ms",
+            f"logdesc-rt: the registration is not a success (confidence {result.confidence:.3f}); the pose was "
+            f"printed anyway. Exit code {EXIT_NOT_SUCCESS}; --allow-failure exits 0.",
             file=sys.stderr,
         )
-    return 0
+        return EXIT_NOT_SUCCESS
+    return EXIT_OK
 
 
 def _command_demo(args) -> int:
     from .demo import make_demo_pair
 
+    progress = _Progress(args.quiet)
+    _check_plot(args.plot)
+    config = _runtime_config(args)
     pair = make_demo_pair()
-    registrar = _registrar(args)
-    result = registrar.register(pair.source, pair.target, estimator=args.estimator, refine=args.refine, seed=args.seed)
+    registrar = _registrar(args, config)
+    result = registrar.register(pair.source, pair.target, progress=progress, **_register_options(args))
     truth = pair.true_transformation
     rotation_error = float(rotation_error_deg(result.rotation, truth[:3, :3]))
     translation_error = float(np.linalg.norm(result.translation - truth[:3, 3]))
@@ -86,50 +261,111 @@ def _command_demo(args) -> int:
     print(_format_matrix(truth))
     print(f"rotation error    {rotation_error:.3f} deg")
     print(f"translation error {translation_error:.4f} (object radius 1)")
+    print(f"success {result.success} (confidence {result.confidence:.3f}), pose from {result.pose_estimator}")
     print(f"matches {len(result.correspondences)}, fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4f}")
     print("timings: " + ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in result.timings.items()))
     if args.plot:
         from .plotting import plot_registration
 
-        plot_registration(pair.source, pair.target, result.transformation, args.plot)
+        progress(f"drawing {args.plot}")
+        plot_registration(pair.source, pair.target, result.transformation, args.plot, result=result,
+                          true_transformation=truth)
         print(f"picture written to {args.plot}")
-    return 0
+    if not result.success and not args.allow_failure:
+        return EXIT_NOT_SUCCESS
+    return EXIT_OK
 
 
 def _command_describe(args) -> int:
     from .io import read_point_cloud
 
+    _check_input(args.cloud, "cloud")
+    out = args.out or Path(args.cloud).with_suffix(".descriptors.npz")
+    _check_output(Path(out), "--out", (".npz",))
     points = read_point_cloud(args.cloud)
     described = _registrar(args).describe(points)
-    out = args.out or Path(args.cloud).with_suffix(".descriptors.npz")
     np.savez(out, indices=described.indices, descriptors=described.descriptors, normals=described.normals,
              points=points[described.indices])
     print(f"{len(described.indices)} descriptors of dimension {described.descriptors.shape[1]} written to {out}")
-    return 0
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- parser
+def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled model)")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
+    parser.add_argument("--max-points", type=int, default=None,
+                        help="working size per cloud for the networks (default: the model's, 1024); larger "
+                             "clouds are subsampled; memory grows with its square")
+
+
+def _add_registration_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--estimator", choices=("auto", "fsr", "svd", "ransac"), default=None, help=ESTIMATOR_HELP)
+    parser.add_argument("--refine", choices=("none", "point_to_point", "point_to_plane"), default=None,
+                        help="ICP on the full clouds after the learned pose (default: none)")
+    parser.add_argument("--max-correspondence-distance", type=float, default=None, metavar="D",
+                        help="for ICP, fitness and inlier RMSE, in the clouds' unit (default: 5%% of the larger radius)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seeds every random choice (FSR, RANSAC, verification subsets); same input and seed, "
+                             "same output (default 0)")
+    parser.add_argument("--subsampling", choices=("fps", "voxel"), default=None,
+                        help="how clouds above the working size are reduced (default fps: farthest-point)")
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE.json",
+                        help="runtime configuration (JSON, any subset of the 'config' object --json prints); "
+                             "the flags above override it")
+    parser.add_argument("--allow-failure", action="store_true",
+                        help=f"exit 0 even when the result is not a success (default: exit {EXIT_NOT_SUCCESS})")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="logdesc-rt", description="LoGDesc point-cloud registration on the CPU.")
+    from .io import SUPPORTED_SUFFIXES
+
+    formats = ", ".join(SUPPORTED_SUFFIXES)
+    parser = argparse.ArgumentParser(
+        prog="logdesc-rt",
+        description="LoGDesc point-cloud registration on the CPU: estimates the rigid transform that maps "
+                    "SOURCE onto TARGET, verifies it on the full clouds and says whether it is a success.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"logdesc-rt {_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    register = commands.add_parser("register", help="register SOURCE onto TARGET, print the 4x4 transform")
-    register.add_argument("source", type=Path)
-    register.add_argument("target", type=Path)
-    register.add_argument("--json", action="store_true", help="print one JSON object (key 'transformation': 4x4 list)")
-    register.add_argument("--write-aligned", type=Path, default=None, help="write the transformed source cloud here")
-    register.add_argument("--plot", type=Path, default=None, help="write a before/after PNG here (needs matplotlib)")
+    register = commands.add_parser(
+        "register",
+        help="register SOURCE onto TARGET, print the 4x4 transform",
+        description="Estimate the rigid transform mapping SOURCE onto TARGET; print it (4x4, or --json).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    register.add_argument("source", type=Path, help=f"the cloud to move: a point-cloud file ({formats}), any unit")
+    register.add_argument("target", type=Path, help="the cloud to align it to, same unit")
+    register.add_argument("--json", action="store_true",
+                          help="print one JSON object: transformation (4x4 list), success, confidence, fitness, "
+                               "inlier_rmse (null without inliers), correspondences, hypotheses, timings, config")
+    register.add_argument("--write-aligned", type=Path, default=None, metavar="OUT",
+                          help=f"write the moved source here ({formats}); a PLY input's normals (turned), colours "
+                               "and other vertex properties are kept where the output format has room")
+    register.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
+                          help="write a picture (before / after with residuals, correspondences); needs matplotlib")
+    register.add_argument("--init", type=Path, default=None, metavar="FILE",
+                          help="initial guess source -> target: a 4x4 matrix as text, .npy, or .json (a 4x4 list "
+                               "or --json's output); verified with the other candidates")
     _add_registration_options(register)
     _add_runtime_options(register)
     register.set_defaults(handler=_command_register)
 
-    demo = commands.add_parser("demo", help="register a generated example with known ground truth")
-    demo.add_argument("--plot", type=Path, default=None, help="write a before/after PNG here (needs matplotlib)")
+    demo = commands.add_parser("demo", help="register a generated example with known ground truth",
+                               epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    demo.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
+                      help="write a picture (before / after, correspondences); needs matplotlib")
     _add_registration_options(demo)
     _add_runtime_options(demo)
     demo.set_defaults(handler=_command_demo)
 
     describe = commands.add_parser("describe", help="write per-point learned descriptors of CLOUD (.npz)")
-    describe.add_argument("cloud", type=Path)
+    describe.add_argument("cloud", type=Path, help=f"a point-cloud file ({formats})")
     describe.add_argument("--out", type=Path, default=None, help="output .npz (default: CLOUD.descriptors.npz)")
     _add_runtime_options(describe)
     describe.set_defaults(handler=_command_describe)
@@ -140,9 +376,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)
-    except (LogdescError, ValueError) as error:
+    except (LogdescError, ValueError, TypeError) as error:
         print(f"logdesc-rt: error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":

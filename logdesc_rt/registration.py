@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -352,6 +352,7 @@ class Registrar:
         seed: int | None = None,
         init=None,
         config: RuntimeConfig | None = None,
+        progress: Callable[[str], None] | None = None,
     ) -> RegistrationResult:
         """Estimate the rigid transform that maps ``source`` onto ``target``, and judge it.
 
@@ -371,6 +372,8 @@ class Registrar:
                 candidates and is verified like them; with "auto" it is kept if it scores best.
             config: this call's :class:`~logdesc_rt.config.RuntimeConfig` (default: the
                 Registrar's); the keyword arguments above override it.
+            progress: optional callable, called with a short message as each stage starts
+                (the command line prints them on stderr).
 
         Returns:
             :class:`RegistrationResult`; check ``success`` (or ``confidence``) before using it.
@@ -389,6 +392,8 @@ class Registrar:
             seed=seed,
         )
         initial = None if init is None else check_rigid_transformation(init, name="init")
+        report = progress if progress is not None else (lambda message: None)
+        report("matching: geometry, networks and Sinkhorn on the working subsets")
         pair = self._with_config(config).match(source, target)
         timings = dict(pair.timings)
         with _timed(timings, "pose"):
@@ -405,6 +410,10 @@ class Registrar:
         scale = pair.normalization.scale
         refinement = config.refinement
         distance = refinement.max_correspondence_distance or refinement.distance_fraction * scale
+        report(
+            f"verifying {len(candidates)} candidate poses on the full clouds "
+            f"({len(pair.source_points)} x {len(pair.target_points)} points)"
+        )
         with _timed(timings, "verification"):
             correspondences = pair.correspondences
             verifier = PoseVerifier(
@@ -427,6 +436,7 @@ class Registrar:
 
         refined, icp_result = pose, None
         if refinement.method is not None:
+            report(f"refining: {refinement.method} ICP on the full clouds")
             with _timed(timings, "refinement"):
                 icp_result = icp(
                     pair.source_points,
