@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 from . import errors
-from .config import GeometryConfig, MatchingConfig, NormalizationConfig
+from .config import GeometryConfig, MatchingConfig, NormalizationConfig, RuntimeConfig
 from .geometry import PointGeometry, compute_geometry
 from .io import read_point_cloud, write_point_cloud
 from .registration import (
@@ -33,6 +33,7 @@ __all__ = [
     "PreparedPair",
     "Registrar",
     "RegistrationResult",
+    "RuntimeConfig",
     "compute_geometry",
     "describe",
     "errors",
