@@ -700,8 +700,9 @@ def register(source, target, **options) -> RegistrationResult:
     """Register two clouds with the bundled model (loaded once, reused).
 
     ``options`` are those of :meth:`Registrar.register` (estimator, refine,
-    max_correspondence_distance, seed). For another model, threads or working size, build a
-    :class:`Registrar`.
+    max_correspondence_distance, seed, init, config, progress); ``config`` may set every
+    runtime stage, the working size and matching included. For another model or thread count,
+    build a :class:`Registrar`. Check ``result.success`` before using the pose.
     """
     return _default_registrar().register(source, target, **options)
 
