@@ -8,6 +8,8 @@
 from __future__ import annotations
 
 from . import errors
+from .align import AlignConfig, AlignmentResult, align
+from .batch import register_many
 from .config import GeometryConfig, MatchingConfig, NormalizationConfig, RuntimeConfig
 from .geometry import PointGeometry, compute_geometry
 from .io import read_point_cloud, write_point_cloud
@@ -24,6 +26,8 @@ from .registration import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "AlignConfig",
+    "AlignmentResult",
     "Descriptors",
     "GeometryConfig",
     "MatchingConfig",
@@ -34,10 +38,12 @@ __all__ = [
     "Registrar",
     "RegistrationResult",
     "RuntimeConfig",
+    "align",
     "compute_geometry",
     "describe",
     "errors",
     "read_point_cloud",
     "register",
+    "register_many",
     "write_point_cloud",
 ]
