@@ -136,8 +136,8 @@ class AlignmentResult:
         rejected: the candidate pairs that did not pass: ``{"first", "second", "reason",
             "confidence"}`` (reason: the error, or "not verified").
         candidate_pairs: how many pairs were registered.
-        records: the register_many records of the candidate pairs (pair ids
-            ``"i-j"``, scan ``j`` registered onto scan ``i``).
+        records: the register_many records of the candidate pairs, in the order of
+            ``candidate_pairs`` (id ``"NAME_J -> NAME_I"``: scan j registered onto scan i, i < j).
         timings: seconds per stage: load, candidates, pairwise, graph, total.
     """
 
@@ -225,7 +225,8 @@ def align(
     timings["candidates"] = time.perf_counter() - tick
 
     tick = time.perf_counter()
-    jobs = [(f"{i}-{j}", clouds[j], clouds[i]) for i, j in pairs]  # scan j onto scan i
+    # Scan j onto scan i; ids by name, so a resumed run finds its pairs whatever the order.
+    jobs = [(f"{names[j]} -> {names[i]}", clouds[j], clouds[i]) for i, j in pairs]
     records = register_many(
         jobs,
         workers=workers,

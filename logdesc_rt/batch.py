@@ -435,7 +435,9 @@ def _run_ray(todo, clouds, workers, threads, address, model_dir, config, options
 
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        # A new local instance stays quiet; joining a cluster takes the cluster's settings
+        # (Ray Client, "ray://...", accepts few init options).
+        ray.init(address=address) if address is not None else ray.init(include_dashboard=False, log_to_driver=False)
     try:
         cluster_cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         workers = min(cluster_cpus if workers is None else workers, len(todo))

@@ -64,7 +64,8 @@ def test_align_recovers_known_poses_and_reports_the_scan_that_overlaps_nothing(m
     scans, truth = bunny_scans(mesh, [0, 40, 80, 120])
     elsewhere = np.random.default_rng(1).normal(size=(3000, 3)) * [0.05, 0.02, 0.01] + [2.0, 0.0, 0.0]
     names = ["a.ply", "b.ply", "c.ply", "d.ply", "stray.ply"]
-    result = align([*scans, elsewhere], names=names, workers=2, progress=False)
+    pairs_file = tmp_path / "pairs.jsonl"
+    result = align([*scans, elsewhere], names=names, workers=2, progress=False, pairs_output=pairs_file)
 
     radius = np.linalg.norm(scans[0] - scans[0].mean(axis=0), axis=1).max()
     assert result.disconnected == ["stray.ply"]
@@ -81,6 +82,13 @@ def test_align_recovers_known_poses_and_reports_the_scan_that_overlaps_nothing(m
     assert set(payload["poses"]) == set(names[:4]) and payload["disconnected"] == ["stray.ply"]
     assert payload["pairs"] and all(p["residual_rotation_deg"] is not None for p in payload["pairs"])
     assert all("stray.ply" not in (p["source"], p["target"]) for p in payload["pairs"])
+
+    # Resumed from its pairs file, align registers nothing again and places the scans the same.
+    again = align([*scans, elsewhere], names=names, workers=2, progress=False, pairs_output=pairs_file)
+    assert len(pairs_file.read_text().splitlines()) == 10
+    assert again.records == result.records
+    for name in names[:4]:
+        np.testing.assert_array_equal(again.poses[name], result.poses[name])
 
     points, scan = merge_scans([*scans, elsewhere], result, voxel_size=0.004)
     assert set(np.unique(scan)) == {0, 1, 2, 3}, "the disconnected scan is not merged"
