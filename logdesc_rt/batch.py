@@ -240,6 +240,8 @@ def register_many(
         raise ValueError(f"threads_per_worker: {threads_per_worker!r} must be an integer >= 1")
     if workers == 0 and backend != "local":
         raise ValueError("workers=0 (run in this process) is for the local backend only")
+    workers = None if workers is None else int(workers)
+    threads_per_worker = None if threads_per_worker is None else int(threads_per_worker)
     jobs, clouds = plan_jobs(pairs)
     options: dict[str, Any] = {}
     if estimator is not None:
