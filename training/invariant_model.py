@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ModelConfig
+from .layers import edge_convolutions, merge_heads, split_heads
 
 DISTANCE_CHANNELS = 5
 # Monomials n^alpha with |alpha| = 2 and 4 and their multinomial coefficients p! / alpha!.
@@ -100,9 +101,9 @@ class _ExportedAttention(torch.autograd.Function):
     def forward(ctx, query, key, value, heads: int):  # noqa: ARG004 (ctx: export-only, no backward)
         """query (B, N, H dq), key (B, M, H dq), value (B, M, H dv) -> (B, N, H dv)."""
         attended = F.scaled_dot_product_attention(
-            _split_heads(query, heads), _split_heads(key, heads), _split_heads(value, heads), scale=1.0
+            split_heads(query, heads), split_heads(key, heads), split_heads(value, heads), scale=1.0
         )
-        return _merge_heads(attended)
+        return merge_heads(attended)
 
     @staticmethod
     def symbolic(graph, query, key, value, heads: int):
@@ -113,19 +114,11 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
     """softmax_j(q_i . k_j) v_j per head, queries pre-scaled; (B, H, N, dq), (B, H, M, dq),
     (B, H, M, dv) -> (B, H, N, dv). Exported as the fused kernel (:class:`_ExportedAttention`)."""
     if torch.onnx.is_in_onnx_export():
-        fused = _ExportedAttention.apply(_merge_heads(query), _merge_heads(key), _merge_heads(value), heads)
-        return _split_heads(fused, heads)
+        fused = _ExportedAttention.apply(merge_heads(query), merge_heads(key), merge_heads(value), heads)
+        return split_heads(fused, heads)
     return F.scaled_dot_product_attention(query, key, value, scale=1.0)
 
 
-def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
-    """(B, N, C) -> (B, H, N, C / H)."""
-    return x.reshape(x.shape[0], x.shape[1], heads, -1).transpose(1, 2)
-
-
-def _merge_heads(x: torch.Tensor) -> torch.Tensor:
-    """(B, H, N, C / H) -> (B, N, C)."""
-    return x.transpose(1, 2).reshape(x.shape[0], x.shape[2], -1)
 
 
 class _Update(nn.Module):
@@ -140,7 +133,7 @@ class _Update(nn.Module):
 
     def forward(self, x: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
         """x: (B, N, w); attended: (B, H, N, w / H) -> (B, N, w)."""
-        message = self.message_norm(self.merge(_merge_heads(attended)))
+        message = self.message_norm(self.merge(merge_heads(attended)))
         return x + self.update_norm(self.mlp(torch.cat((x, message), dim=-1)))
 
 
@@ -188,9 +181,9 @@ class GeometricSelfLayer(nn.Module):
             normal_parts: from :func:`normal_channels`, (B, N, 6) and (B, N, 15).
         """
         batch, count, heads = x.shape[0], x.shape[1], self.heads
-        query = _split_heads(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))
-        key = _split_heads(self.key(x), heads)
-        value = _split_heads(self.value(x), heads)
+        query = split_heads(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))
+        key = split_heads(self.key(x), heads)
+        value = split_heads(self.value(x), heads)
 
         distance_query, distance_key = distance_parts  # (B, N, 5)
         locality = torch.exp(self.log_locality).reshape(1, heads, 1, 1)
@@ -232,10 +225,10 @@ class BidirectionalCrossLayer(nn.Module):
         """(B, N, w), (B, M, w) -> updated (B, N, w), (B, M, w)."""
         heads = self.heads
         scale = 1.0 / math.sqrt(self.head_dim)
-        source_qk = _split_heads(self.query_key(source), heads)
-        target_qk = _split_heads(self.query_key(target), heads)
-        source_value = _split_heads(self.value(source), heads)
-        target_value = _split_heads(self.value(target), heads)
+        source_qk = split_heads(self.query_key(source), heads)
+        target_qk = split_heads(self.query_key(target), heads)
+        source_value = split_heads(self.value(source), heads)
+        target_value = split_heads(self.value(target), heads)
         if torch.onnx.is_in_onnx_export():
             # The fused kernel, once per direction: twice the Q K^T work, but no (B, H, N, M)
             # tensor outlives its kernel (the export parity check holds it to the path below).
@@ -254,16 +247,7 @@ class InvariantDescriptor(nn.Module):
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
-        local: list[nn.Module] = []
-        channels_in = config.edge_channels
-        for channels_out in config.descriptor_channels:
-            local += [
-                nn.Conv2d(channels_in, channels_out, kernel_size=1, bias=False),
-                nn.GroupNorm(config.group_norm_groups, channels_out),
-                nn.ReLU(),
-            ]
-            channels_in = channels_out
-        self.local = nn.Sequential(*local)
+        self.local = edge_convolutions(config)
         width = config.attention_width
         self.layers = nn.ModuleList(
             GeometricSelfLayer(width, config.descriptor_heads, locality_range=(0.05, 0.5))

@@ -24,6 +24,7 @@ from torch import nn
 
 from .config import ModelConfig
 from .invariant_model import InvariantDescriptor, InvariantTransformer
+from .layers import edge_convolutions, merge_heads, split_heads
 from .sinkhorn import log_optimal_transport
 
 __all__ = [
@@ -94,14 +95,6 @@ class RotaryEncoding3D(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
-    """(B, N, C) -> (B, H, N, C / H)."""
-    return x.reshape(x.shape[0], x.shape[1], heads, -1).transpose(1, 2)
-
-
-def _merge_heads(x: torch.Tensor) -> torch.Tensor:
-    """(B, H, N, C / H) -> (B, N, C)."""
-    return x.transpose(1, 2).reshape(x.shape[0], x.shape[2], -1)
 
 
 class AttentionalLayer(nn.Module):
@@ -162,16 +155,16 @@ class AttentionalLayer(nn.Module):
             query = RotaryEncoding3D.rotate(query, cos, sin)
             key = RotaryEncoding3D.rotate(key, cos, sin)
             value = RotaryEncoding3D.rotate(value, cos, sin)
-        query = _split_heads(query, self.heads)
-        key = _split_heads(key, self.heads)
-        value = _split_heads(value, self.heads)
+        query = split_heads(query, self.heads)
+        key = split_heads(key, self.heads)
+        value = split_heads(value, self.heads)
         if logit_term is None:
             attended = F.scaled_dot_product_attention(query, key, value)
         else:
             if lookup is None:
                 raise ValueError("logit_term needs the normal-angle lookup")
             attended = self._attend_with_term(query, key, value, logit_term, lookup)
-        message = self.message_norm(self.merge(_merge_heads(attended)))
+        message = self.message_norm(self.merge(merge_heads(attended)))
         return x + self.update_norm(self.mlp(torch.cat((x, message), dim=-1)))
 
 
@@ -220,17 +213,7 @@ class LoGDescDescriptor(nn.Module):
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.config = config
-        local: list[nn.Module] = []
-        channels_in = config.edge_channels
-        for channels_out in config.descriptor_channels:
-            # No conv bias: GroupNorm re-centres every group and adds its own learned shift.
-            local += [
-                nn.Conv2d(channels_in, channels_out, kernel_size=1, bias=False),
-                nn.GroupNorm(config.group_norm_groups, channels_out),
-                nn.ReLU(),
-            ]
-            channels_in = channels_out
-        self.local = nn.Sequential(*local)
+        self.local = edge_convolutions(config)
         width = config.attention_width
         self.rotary = RotaryEncoding3D(width, config.rotary_base, config.rotary_position_scale)
         self.layers = nn.ModuleList(
