@@ -1,6 +1,6 @@
-"""Command line: ``logdesc-rt register | demo | describe``.
+"""Command line: ``logdesc-rt register | demo | describe | register-many | align``.
 
-argparse (standard library) is enough for three subcommands and keeps the runtime's
+argparse and csv (standard library) are enough for five subcommands and keep the runtime's
 dependencies at numpy, scipy, pykdtree and onnxruntime.
 
 Everything that can be checked before the work is checked first (input files readable,
@@ -14,6 +14,11 @@ Exit codes (``register`` and ``demo``):
     2  an error: bad arguments, unreadable or invalid input, unwritable output
     3  the registration ran but is not a success (the pose is printed and written anyway);
        ``--allow-failure`` turns this into 0
+
+``register-many``: 0 when every pair has a record that is ``ok`` and a ``success``; 3 when any
+pair failed (error record) or is not a success; 2 for bad arguments or an unreadable pairs CSV
+(nothing registered). ``align``: 0 when every scan is placed; 3 when any scan is disconnected
+(poses.json is written anyway); 2 as above.
 """
 
 from __future__ import annotations
@@ -290,10 +295,253 @@ def _command_describe(args) -> int:
     return EXIT_OK
 
 
+
+# ----------------------------------------------------------------------------- many pairs, many scans
+PAIRS_OUTPUT_SUFFIXES = (".jsonl", ".ndjson")
+
+
+def _check_backend(args) -> None:
+    """--backend ray needs Ray installed; --address only means something with Ray."""
+    if args.backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError as error:
+            raise ValueError('--backend ray needs Ray, which is not installed: pip install "logdesc-rt[ray]"') from error
+    elif args.address is not None:
+        raise ValueError("--address is for --backend ray only")
+
+
+def read_pairs_csv(path: Path) -> list[tuple[str, str, str]]:
+    """The pairs of a CSV file: one ``source,target[,id]`` row per pair.
+
+    A first row whose cells name the columns (``source``, ``target`` and optionally ``id``,
+    any order, any case) is a header; otherwise the columns are source, target, id in that
+    order. Blank rows and rows starting with ``#`` are skipped. Relative paths are resolved
+    against the CSV file's folder, so the file can be moved with its clouds. The id defaults
+    to ``"SOURCE -> TARGET"`` (paths as written in the file).
+
+    Returns:
+        (id, source path, target path) per pair, in file order.
+
+    Raises:
+        ValueError: the file is missing or unreadable, a row has the wrong number of cells or
+            an empty path, ids repeat, or there are no pairs; the message names the row.
+    """
+    import csv
+
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError as error:
+        raise ValueError(f"pairs CSV {path}: no such file") from error
+    except (OSError, UnicodeError) as error:
+        raise ValueError(f"pairs CSV {path}: cannot read ({getattr(error, 'strerror', None) or error})") from error
+    rows = [
+        (number, [cell.strip() for cell in row])
+        for number, row in enumerate(csv.reader(text.splitlines()), start=1)
+        if row and any(cell.strip() for cell in row) and not row[0].lstrip().startswith("#")
+    ]
+    if not rows:
+        raise ValueError(f"pairs CSV {path}: no pairs (expected rows 'source,target[,id]')")
+    columns = {"source": 0, "target": 1, "id": 2}
+    first = [cell.lower() for cell in rows[0][1]]
+    if "source" in first and "target" in first:
+        unknown = [cell for cell in first if cell not in columns]
+        if unknown or len(set(first)) != len(first):
+            raise ValueError(f"pairs CSV {path}: header {rows[0][1]} must name source, target and optionally id, once each")
+        columns = {name: first.index(name) for name in columns if name in first}
+        rows = rows[1:]
+        if not rows:
+            raise ValueError(f"pairs CSV {path}: a header but no pairs")
+    folder = path.parent
+    needed = max(columns["source"], columns["target"]) + 1
+    pairs: list[tuple[str, str, str]] = []
+    seen: dict[str, int] = {}
+    for number, cells in rows:
+        if len(cells) not in (2, 3) or len(cells) < needed:
+            raise ValueError(f"pairs CSV {path}, row {number}: {len(cells)} cells; expected source,target[,id]")
+        source, target = cells[columns["source"]], cells[columns["target"]]
+        if not source or not target:
+            raise ValueError(f"pairs CSV {path}, row {number}: empty source or target path")
+        given_id = cells[columns["id"]] if "id" in columns and columns["id"] < len(cells) else ""
+        pair_id = given_id or f"{source} -> {target}"
+        if pair_id in seen:
+            raise ValueError(f"pairs CSV {path}, row {number}: pair id {pair_id!r} repeats row {seen[pair_id]}")
+        seen[pair_id] = number
+        pairs.append((pair_id, str(folder / source), str(folder / target)))
+    return pairs
+
+
+def _record_line(record: dict) -> str:
+    if not record.get("ok"):
+        return f"{record['id']}: ERROR {record['error']['type']}: {record['error']['message']}"
+    verdict = "success" if record["success"] else "NOT A SUCCESS"
+    return f"{record['id']}: {verdict}, confidence {record['confidence']:.3f}, fitness {record['fitness']:.3f}"
+
+
+def _command_register_many(args) -> int:
+    from .batch import register_many
+
+    progress = _Progress(args.quiet)
+    # 1. Everything that can fail without registering.
+    _check_output(args.out, "--out", PAIRS_OUTPUT_SUFFIXES)
+    _check_backend(args)
+    pairs = read_pairs_csv(args.pairs)
+    config = _runtime_config(args)
+    # The workers build their Registrar from the config: the working-size flags go into it.
+    subsampling = {"max_points": args.max_points, "method": args.subsampling}
+    subsampling = {key: value for key, value in subsampling.items() if value is not None}
+    if subsampling:
+        import dataclasses
+
+        config = dataclasses.replace(config, subsampling=dataclasses.replace(config.subsampling, **subsampling))
+
+    # 2. The work: records stream to --out as pairs finish.
+    bar = not args.quiet and sys.stderr.isatty()
+    progress(f"{len(pairs)} pairs from {args.pairs}; records to {args.out}"
+             + ("" if args.resume else " (started afresh: --no-resume)"))
+    done = 0
+
+    def report(record: dict) -> None:
+        nonlocal done
+        done += 1
+        if not bar:
+            progress(f"{done} done: {_record_line(record)}")
+
+    records = register_many(
+        [(pair_id, source, target) for pair_id, source, target in pairs],
+        workers=args.workers,
+        threads_per_worker=args.threads_per_worker,
+        backend=args.backend,
+        address=args.address,
+        output=args.out,
+        resume=args.resume,
+        progress=False if args.quiet else (None if bar else False),
+        on_record=report,
+        model_dir=args.model,
+        config=config,
+        **_register_options(args),
+    )
+
+    # 3. Verdict: a summary on stdout, the failures named on stderr, the exit code.
+    errors = [record for record in records if not record.get("ok")]
+    not_success = [record for record in records if record.get("ok") and not record["success"]]
+    skipped = len(records) - done
+    print(f"{len(records)} pairs: {len(records) - len(errors) - len(not_success)} success, "
+          f"{len(not_success)} not a success, {len(errors)} errors ({skipped} already in {args.out}, skipped)")
+    for record in (errors + not_success)[:20]:
+        print(f"logdesc-rt: {_record_line(record)}", file=sys.stderr)
+    if errors or not_success:
+        if args.allow_failure:
+            return EXIT_OK
+        print(f"logdesc-rt: {len(errors) + len(not_success)} of {len(records)} pairs failed or are not a success "
+              f"(records in {args.out}). Exit code {EXIT_NOT_SUCCESS}; --allow-failure exits 0.", file=sys.stderr)
+        return EXIT_NOT_SUCCESS
+    return EXIT_OK
+
+
+def _command_align(args) -> int:
+    from .align import AlignConfig, align, merge_scans
+
+    progress = _Progress(args.quiet)
+    # 1. Everything that can fail without registering.
+    if len(args.scans) < 2:
+        raise ValueError(f"align needs at least 2 scans, got {len(args.scans)}")
+    for scan in args.scans:
+        _check_input(scan, "scan")
+    names = [str(scan) for scan in args.scans]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(f"scan {repeated[0]} is given more than once")
+    _check_output(args.out, "--out", (".json",))
+    if args.merged is not None:
+        from .io import ATTRIBUTE_SUFFIXES
+
+        _check_output(args.merged, "--merged", ATTRIBUTE_SUFFIXES)
+    if args.voxel is not None and not (np.isfinite(args.voxel) and args.voxel > 0):
+        raise ValueError(f"--voxel {args.voxel}: must be a positive length in the scans' unit")
+    if args.pairs is not None:
+        _check_output(args.pairs, "--pairs", PAIRS_OUTPUT_SUFFIXES)
+    _check_plot(args.plot)
+    _check_backend(args)
+    runtime_config = _runtime_config(args)
+    refine = AlignConfig.refine if args.refine is None else (None if args.refine == "none" else args.refine)
+    config = AlignConfig(refine=refine, seed=0 if args.seed is None else args.seed)
+
+    # 2. The work.
+    progress(f"aligning {len(names)} scans into the frame of {names[0]}")
+    result = align(
+        args.scans,
+        names=names,
+        config=config,
+        runtime_config=runtime_config,
+        backend=args.backend,
+        workers=args.workers,
+        threads_per_worker=args.threads_per_worker,
+        address=args.address,
+        pairs_output=args.pairs,
+        progress=False if args.quiet else None,
+        model_dir=args.model,
+    )
+    progress(f"{result.candidate_pairs} pairs registered, {sum(edge.kept for edge in result.edges)} used; "
+             f"writing {args.out}")
+    args.out.write_text(json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
+    if args.merged is not None or args.plot is not None:
+        points, scan = merge_scans(args.scans, result, args.voxel)
+        if args.merged is not None:
+            from .io import write_point_cloud
+
+            progress(f"writing the merged cloud ({len(points)} points) to {args.merged}")
+            write_point_cloud(args.merged, points, attributes={"scan": scan})
+        if args.plot is not None:
+            from .plotting import plot_alignment
+
+            progress(f"drawing {args.plot}")
+            plot_alignment(points, scan, names, args.plot, disconnected=result.disconnected)
+
+    # 3. One line per scan on stdout, the verdict in the exit code.
+    for name in names:
+        print(f"{name}: {'placed' if name in result.poses else 'DISCONNECTED'}")
+    if result.disconnected:
+        if args.allow_failure:
+            return EXIT_OK
+        print(f"logdesc-rt: {len(result.disconnected)} of {len(names)} scans are disconnected (no verified pair ties "
+              f"them to {names[0]}): {', '.join(result.disconnected)}. Exit code {EXIT_NOT_SUCCESS}; "
+              "--allow-failure exits 0.", file=sys.stderr)
+        return EXIT_NOT_SUCCESS
+    return EXIT_OK
+
+
 # ----------------------------------------------------------------------------- parser
-def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
+def _count(minimum: int):
+    """argparse type: an integer >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} must be >= {minimum}")
+        return value
+
+    return parse
+
+
+def _add_parallel_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=_count(0), default=None, metavar="N",
+                        help="worker processes (local) or actors (ray); default: one per core; 0 runs in this process")
+    parser.add_argument("--threads-per-worker", type=_count(1), default=None, metavar="T",
+                        help="onnxruntime threads per worker (default: cores / workers)")
+    parser.add_argument("--backend", choices=("local", "ray"), default="local",
+                        help='local process pool (default) or a Ray cluster (pip install "logdesc-rt[ray]")')
+    parser.add_argument("--address", default=None, metavar="ADDR",
+                        help="Ray cluster to join, e.g. auto or ray://HEAD:10001 (default: a local Ray instance)")
+
+
+def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) -> None:
     parser.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled model)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
+    if threads:
+        parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--max-points", type=int, default=None,
                         help="working size per cloud for the networks (default: the model's, 1024); larger "
                              "clouds are subsampled; memory grows with its square")
@@ -369,6 +617,59 @@ def build_parser() -> argparse.ArgumentParser:
     describe.add_argument("--out", type=Path, default=None, help="output .npz (default: CLOUD.descriptors.npz)")
     _add_runtime_options(describe)
     describe.set_defaults(handler=_command_describe)
+
+    many = commands.add_parser(
+        "register-many",
+        help="register every pair of a CSV file, records to JSON lines (resumable)",
+        description="Register the pairs listed in PAIRS.csv (rows source,target[,id]; an optional header row names "
+                    "the columns; relative paths are read from the CSV's folder) with one model load per worker. "
+                    "One JSON record per pair is appended to --out as it finishes; a pair that fails becomes an "
+                    "error record and the run goes on; pairs already done in --out are skipped.",
+        epilog="exit codes: 0 every pair registered and a success; 3 any pair failed or is not a success "
+               "(--allow-failure: 0); 2 bad arguments or unreadable CSV (nothing registered).",
+    )
+    many.add_argument("pairs", type=Path, metavar="PAIRS.csv", help="CSV: source,target[,id] per row")
+    many.add_argument("--out", type=Path, required=True, metavar="RESULTS.jsonl",
+                      help="JSON-lines output, one record per pair (appended; see logdesc_rt/batch.py for the keys)")
+    many.add_argument("--no-resume", dest="resume", action="store_false",
+                      help="start --out afresh instead of skipping the pairs already done in it")
+    _add_parallel_options(many)
+    _add_registration_options(many)
+    _add_runtime_options(many, threads=False)
+    many.set_defaults(handler=_command_register_many)
+
+    align = commands.add_parser(
+        "align",
+        help="align a set of scans into the frame of the first one (pose graph)",
+        description="Register candidate pairs of SCANs (all pairs up to 12 scans, else nearest scans by a global "
+                    "descriptor), keep the verified ones, solve a pose graph and write each scan's 4x4 pose into "
+                    "the first scan's frame to --out (JSON: poses, the pairs used with their residuals, "
+                    "disconnected scans). Scans no verified pair ties to the first are reported, never placed.",
+        epilog="exit codes: 0 every scan placed; 3 some scan disconnected (--allow-failure: 0; poses.json is "
+               "written anyway); 2 bad arguments, unreadable scan, unwritable output (nothing registered).",
+    )
+    align.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help=f"two or more point-cloud files ({formats})")
+    align.add_argument("--out", type=Path, required=True, metavar="POSES.json",
+                       help='{"poses": {scan: 4x4}, "pairs": [...], "disconnected": [...], ...}')
+    align.add_argument("--merged", type=Path, default=None, metavar="MERGED.ply",
+                       help="write the aligned scans as one voxel-thinned cloud with a per-point 'scan' index")
+    align.add_argument("--voxel", type=float, default=None, metavar="V",
+                       help="voxel size of the merged cloud, in the scans' unit (default: 1/500 of its diagonal)")
+    align.add_argument("--plot", type=Path, default=None, metavar="OVERVIEW.png",
+                       help="write a picture of the merged cloud coloured by scan; needs matplotlib")
+    align.add_argument("--pairs", type=Path, default=None, metavar="PAIRS.jsonl",
+                       help="keep the pairwise records here (JSON lines); a rerun resumes from them")
+    _add_parallel_options(align)
+    align.add_argument("--refine", choices=("none", "point_to_point", "point_to_plane"), default=None,
+                       help="ICP of each pair (default: point_to_plane)")
+    align.add_argument("--seed", type=int, default=None, help="seeds registration (default 0)")
+    align.add_argument("--config", type=Path, default=None, metavar="FILE.json",
+                       help="runtime configuration of the pairwise registrations (JSON, as register --json prints)")
+    align.add_argument("--allow-failure", action="store_true",
+                       help=f"exit 0 even when some scan is disconnected (default: exit {EXIT_NOT_SUCCESS})")
+    align.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    align.add_argument("--model", type=Path, default=None, help="model directory (default: the bundled model)")
+    align.set_defaults(handler=_command_align)
     return parser
 
 

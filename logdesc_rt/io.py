@@ -755,6 +755,8 @@ _ATTRIBUTE_WRITERS: dict[str, Callable[[Path, np.ndarray, dict[str, np.ndarray]]
     ".csv": _write_text_with_attributes,
     ".npy": _write_npy_with_attributes,
 }
+ATTRIBUTE_SUFFIXES: tuple[str, ...] = tuple(_ATTRIBUTE_WRITERS)
+"""Suffixes :func:`write_point_cloud` writes per-point attributes into (all but OFF)."""
 _WRITERS: dict[str, Callable[[Path, np.ndarray], None]] = {
     ".ply": _write_ply,
     ".pcd": _write_pcd,

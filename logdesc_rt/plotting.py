@@ -135,3 +135,49 @@ def _correspondence_panel(axes, source, target, transformation, result, limit, g
 
 def _equal_axes(axes, points: np.ndarray) -> None:
     axes.set_box_aspect(np.ptp(points, axis=0) + 1e-9)
+
+
+def plot_alignment(
+    points: np.ndarray,
+    scan: np.ndarray,
+    names: list[str],
+    path: str | Path,
+    *,
+    disconnected: list[str] | None = None,
+    max_points: int = 4 * DEFAULT_MAX_POINTS,
+    seed: int = 0,
+) -> None:
+    """Write an overview picture (PNG, PDF or SVG by suffix) of an aligned scan set.
+
+    Args:
+        points: (M, 3) merged cloud in the first scan's frame, user units (e.g. from
+            :func:`~logdesc_rt.align.merge_scans`).
+        scan: (M,) int, the index into ``names`` of the scan each point came from.
+        names: one name per scan (the legend).
+        path: the file to write.
+        disconnected: names of the scans left out (no pose); listed in the title.
+        max_points: at most this many points are drawn (seeded subset).
+        seed: seeds that subset.
+    """
+    plt = _pyplot()
+    points = np.asarray(points, dtype=np.float64)
+    scan = np.asarray(scan)
+    shown = _subset(len(points), max_points, np.random.default_rng(seed))
+    figure = plt.figure(figsize=(7.5, 7.0))
+    axes = figure.add_subplot(1, 1, 1, projection="3d")
+    colours = len(names) if len(names) > 10 else 10
+    palette = plt.get_cmap("tab10" if colours == 10 else "tab20")
+    for index in np.unique(scan[shown]):
+        chosen = shown[scan[shown] == index]
+        axes.scatter(*points[chosen].T, s=1, color=palette(int(index) % min(colours, 20)),
+                     label=Path(names[int(index)]).name)
+    if len(np.unique(scan)) <= 20:
+        axes.legend(loc="upper right", markerscale=6, fontsize="small")
+    _equal_axes(axes, points[shown])
+    title = f"{len(np.unique(scan))} of {len(names)} scans aligned, coloured by scan"
+    if disconnected:
+        title += f"; disconnected: {', '.join(Path(name).name for name in disconnected)}"
+    figure.suptitle(title, color="darkred" if disconnected else "darkgreen")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)

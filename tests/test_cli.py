@@ -202,3 +202,150 @@ def test_write_aligned_keeps_normals_and_colours(cloud_files, tmp_path):
     assert np.array_equal(kept["red"], attributes["red"])
     turned = np.stack([kept["nx"], kept["ny"], kept["nz"]], axis=1)
     assert np.allclose(turned, normals @ rotation.T, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- register-many, align
+@pytest.fixture(scope="module")
+def many_files(tmp_path_factory):
+    """Two demo pairs (different seeds) and a cloud far from everything, in one folder."""
+    folder = tmp_path_factory.mktemp("many")
+    first, second = make_demo_pair(), make_demo_pair(seed=2)
+    write_point_cloud(folder / "a.ply", first.source)
+    write_point_cloud(folder / "b.xyz", first.target)
+    write_point_cloud(folder / "c.ply", second.source)
+    write_point_cloud(folder / "d.npy", second.target)
+    stray = np.random.default_rng(1).normal(size=(800, 3)) * [0.3, 0.1, 0.05] + [3.0, 0.0, 0.0]
+    write_point_cloud(folder / "stray.npy", stray)
+    return folder, first
+
+
+def _jsonl(path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def test_register_many_reads_a_csv_and_resumes(many_files, tmp_path):
+    folder, _ = many_files
+    # Relative paths are read from the CSV's folder, wherever the command runs.
+    (folder / "good.csv").write_text("id,source,target\nfirst,a.ply,b.xyz\nsecond,c.ply,d.npy\n")
+    out = tmp_path / "results.jsonl"
+    completed = run_cli("register-many", str(folder / "good.csv"), "--out", str(out), "--workers", "0")
+    assert completed.returncode == 0, completed.stderr
+    records = _jsonl(out)
+    assert [record["id"] for record in records] == ["first", "second"]
+    assert all(record["ok"] and record["success"] for record in records)
+    assert records[0]["source"] == str(folder / "a.ply")
+    assert "2 success, 0 not a success, 0 errors" in completed.stdout
+    assert "first: success" in completed.stderr  # progress per pair on stderr
+
+    # A missing cloud is an error record, not a lost run: exit 3, and the good pairs are
+    # skipped on resume (only the new one runs).
+    (folder / "bad.csv").write_text("a.ply,b.xyz,first\nc.ply,d.npy,second\nc.ply,missing.ply\n")
+    completed = run_cli("register-many", str(folder / "bad.csv"), "--out", str(out), "--workers", "0")
+    assert completed.returncode == 3, completed.stderr
+    first_run, records = records, _jsonl(out)
+    assert len(records) == 3 and records[:2] == first_run, "the done pairs were not run again"
+    assert records[2]["id"] == "c.ply -> missing.ply" and records[2]["ok"] is False
+    assert records[2]["error"]["type"] == "PointCloudFileError" and "missing.ply" in records[2]["error"]["message"]
+    assert "2 already in" in completed.stdout and "first: success" not in completed.stderr
+    allowed = run_cli("register-many", str(folder / "bad.csv"), "--out", str(out), "--workers", "0",
+                      "--allow-failure", "--quiet")
+    assert allowed.returncode == 0 and "done:" not in allowed.stderr  # --quiet: no progress lines
+    # --no-resume starts the file afresh.
+    completed = run_cli("register-many", str(folder / "good.csv"), "--out", str(out), "--workers", "0",
+                        "--no-resume", "--estimator", "svd", "--quiet")
+    assert completed.returncode == 0, completed.stderr
+    assert [(r["id"], r["pose_estimator"]) for r in _jsonl(out)] == [("first", "svd"), ("second", "svd")]
+
+
+@pytest.mark.parametrize(
+    ("csv_text", "arguments", "message"),
+    [
+        (None, (), "no such file"),
+        ("source,target\n", (), "a header but no pairs"),
+        ("a.ply\n", (), "row 1: 1 cells"),
+        ("a.ply,b.xyz,x\nc.ply,d.npy,x\n", (), "repeats row 1"),
+        ("source,target,colour\na.ply,b.xyz,red\n", (), "must name source, target"),
+        ("a.ply,b.xyz\n", ("--out", "{tmp}/no/such/folder/out.jsonl"), "does not exist"),
+        ("a.ply,b.xyz\n", ("--out", "{tmp}/out.csv"), "unsupported suffix"),
+        ("a.ply,b.xyz\n", ("--config", "{tmp}/missing.json"), "cannot read"),
+        ("a.ply,b.xyz\n", ("--address", "auto"), "--backend ray only"),
+    ],
+)
+def test_register_many_refuses_bad_input_before_the_work(many_files, tmp_path, csv_text, arguments, message):
+    folder, _ = many_files
+    pairs = tmp_path / "pairs.csv"
+    if csv_text is not None:
+        pairs.write_text(csv_text.replace("a.ply", str(folder / "a.ply")).replace("b.xyz", str(folder / "b.xyz")))
+    arguments = [argument.format(tmp=tmp_path) for argument in arguments]
+    if "--out" not in arguments:
+        arguments += ["--out", str(tmp_path / "results.jsonl")]
+    completed = run_cli("register-many", str(pairs), *arguments, "--workers", "0")
+    assert completed.returncode == 2, completed.stderr
+    assert message in completed.stderr and "Traceback" not in completed.stderr
+    assert not (tmp_path / "results.jsonl").exists(), "refused before any record was written"
+
+
+def test_register_many_ray_backend_needs_ray_checked_up_front(many_files, tmp_path):
+    folder, _ = many_files
+    (tmp_path / "pairs.csv").write_text(f"{folder / 'a.ply'},{folder / 'b.xyz'}\n")
+    completed = run_cli("register-many", str(tmp_path / "pairs.csv"), "--out", str(tmp_path / "r.jsonl"),
+                        "--backend", "ray", prelude="import sys; sys.modules['ray'] = None")
+    assert completed.returncode == 2 and "logdesc-rt[ray]" in completed.stderr
+    assert not (tmp_path / "r.jsonl").exists()
+
+
+def test_align_writes_poses_merged_cloud_and_overview(many_files, tmp_path):
+    from logdesc_rt.io import read_point_attributes
+
+    folder, pair = many_files
+    scans = [str(folder / "a.ply"), str(folder / "b.xyz"), str(folder / "stray.npy")]
+    out, merged, pairs = tmp_path / "poses.json", tmp_path / "merged.ply", tmp_path / "pairs.jsonl"
+    extra = ["--merged", str(merged), "--voxel", "0.02", "--pairs", str(pairs), "--workers", "0"]
+    has_matplotlib = subprocess.run([sys.executable, "-c", "import matplotlib"]).returncode == 0
+    if has_matplotlib:
+        extra += ["--plot", str(tmp_path / "overview.png")]
+    completed = run_cli("align", *scans, "--out", str(out), *extra)
+    # The stray cloud overlaps nothing: reported disconnected, exit 3, poses written anyway.
+    assert completed.returncode == 3, completed.stderr
+    assert "stray.npy: DISCONNECTED" in completed.stdout and "disconnected" in completed.stderr
+    result = json.loads(out.read_text())
+    assert set(result["poses"]) == set(scans[:2]) and result["disconnected"] == [scans[2]]
+    np.testing.assert_array_equal(result["poses"][scans[0]], np.eye(4))
+    # b's points into a's frame: the inverse of the pair's source -> target pose.
+    truth = np.linalg.inv(pair.true_transformation)
+    assert rotation_error_deg(np.array(result["poses"][scans[1]])[:3, :3], truth[:3, :3]) < 2.0
+    assert [(p["source"], p["target"]) for p in result["pairs"]] == [(scans[1], scans[0])]
+    assert len(_jsonl(pairs)) == 3
+    scan_index = read_point_attributes(merged)["scan"]
+    assert set(np.unique(scan_index)) == {0, 1}
+    assert len(scan_index) < 2 * 768, "the merged cloud is voxel-thinned"
+    if has_matplotlib:
+        assert (tmp_path / "overview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Rerun from the pairs file: nothing registered again, --allow-failure exits 0.
+    again = run_cli("align", *scans, "--out", str(out), "--pairs", str(pairs), "--workers", "0", "--allow-failure")
+    assert again.returncode == 0, again.stderr
+    assert json.loads(out.read_text())["poses"] == result["poses"]
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message", "prelude"),
+    [
+        (("{a}",), "at least 2 scans", ""),
+        (("{a}", "{a}"), "more than once", ""),
+        (("{a}", "{tmp}/missing.ply"), "no such file", ""),
+        (("{a}", "{b}", "--out", "{tmp}/poses.txt"), "unsupported suffix", ""),
+        (("{a}", "{b}", "--merged", "{tmp}/merged.off"), "unsupported suffix", ""),
+        (("{a}", "{b}", "--voxel", "-1"), "--voxel", ""),
+        (("{a}", "{b}", "--pairs", "{tmp}/no/folder/p.jsonl"), "does not exist", ""),
+        (("{a}", "{b}", "--plot", "{tmp}/o.png"), "matplotlib", "import sys; sys.modules['matplotlib'] = None"),
+    ],
+)
+def test_align_refuses_bad_input_before_the_work(many_files, tmp_path, arguments, message, prelude):
+    folder, _ = many_files
+    arguments = [a.format(a=folder / "a.ply", b=folder / "b.xyz", tmp=tmp_path) for a in arguments]
+    if "--out" not in arguments:
+        arguments += ["--out", str(tmp_path / "poses.json")]
+    completed = run_cli("align", *arguments, "--workers", "0", prelude=prelude)
+    assert completed.returncode == 2, completed.stderr
+    assert message in completed.stderr and "Traceback" not in completed.stderr
+    assert "aligning" not in completed.stderr and not (tmp_path / "poses.json").exists()
