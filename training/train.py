@@ -43,7 +43,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as ``python training/train.py``: import from the repo root
@@ -481,8 +481,127 @@ def resolve_resume(args) -> Path | None:
     return path
 
 
-def train(args) -> int:
-    """Run (or continue) training; returns the process exit code."""
+@dataclass
+class TrainingRun:
+    """One invocation of training: what :func:`train`'s loop works with.
+
+    Built by :func:`start_run` (fresh or resumed); the loop calls :meth:`optimisation_step`,
+    :meth:`validate` and :meth:`save`, and asks :meth:`reason_to_stop` when to end.
+    """
+
+    args: argparse.Namespace
+    device: torch.device
+    amp: bool
+    model: LoGDescMatcher
+    step_model: torch.nn.Module  # ``model``, compiled with --compile
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LambdaLR
+    progress: Progress
+    geometry: GeometryConfig
+    train_loader: DataLoader
+    val_loader: DataLoader | None
+    batches_per_epoch: int
+    log: JsonlLog
+    resumed_from: Path | None
+    session_start: float = field(default_factory=time.monotonic)
+    throughput: float | None = None  # pairs/s, exponential moving average
+
+    def wall_time(self) -> float:
+        """Training wall time over all sessions, this one included (seconds)."""
+        return self.progress.wall_time_s + (time.monotonic() - self.session_start)
+
+    def stamp(self, kind: str, **extra) -> dict:
+        """A log record: its type, the progress counters and ``extra``."""
+        progress = self.progress
+        return {
+            "type": kind, "step": progress.step, "epoch": round(progress.step / self.batches_per_epoch, 4),
+            "pairs_seen": progress.pairs_seen, "wall_time_s": round(self.wall_time(), 3), **extra,
+        }
+
+    def save(self, name: str = "last.pt") -> None:
+        """Write a resumable checkpoint (atomically) into ``--out``."""
+        progress = self.progress
+        snapshot = Progress(progress.step, progress.pairs_seen, self.wall_time(), progress.best_metric, progress.best_step)
+        atomic_torch_save(
+            checkpoint_dict(self.model, self.optimizer, self.scheduler, snapshot, self.args, self.model.config),
+            self.args.out / name,
+        )
+
+    def reason_to_stop(self, stop: StopFlag) -> str | None:
+        """Why the loop must end before the next step, or None."""
+        if self.args.max_steps is not None and self.progress.step >= self.args.max_steps:
+            return "max_steps"
+        if self.args.max_minutes is not None and time.monotonic() - self.session_start >= 60 * self.args.max_minutes:
+            return "max_minutes"
+        if stop:
+            return f"signal {stop.signal_name}"
+        return None
+
+    def optimisation_step(self, batch: dict, fetch_start: float) -> dict:
+        """Forward, loss, backward, clipped Adam step and lr schedule on one host batch.
+
+        A non-finite loss or gradient skips the update but still counts the step, so the
+        batch sequence stays aligned with the step. Returns the step's log record.
+        """
+        compute_start = time.perf_counter()
+        batch = to_device(batch, self.device, self.geometry)
+        terms = loss_terms(forward(self.step_model, batch, self.amp), batch, self.args)
+        self.optimizer.zero_grad(set_to_none=True)
+        grad_norm, skipped = float("nan"), True
+        if torch.isfinite(terms["loss"]):
+            terms["loss"].backward()
+            clip = self.args.grad_clip if self.args.grad_clip > 0 else float("inf")
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip))
+            skipped = not math.isfinite(grad_norm)
+            if not skipped:
+                self.optimizer.step()
+        self.scheduler.step()
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+        end = time.perf_counter()
+
+        batch_size = int(batch["src_points"].shape[0])
+        self.progress.step += 1
+        self.progress.pairs_seen += batch_size
+        rate = batch_size / max(1e-9, end - fetch_start)
+        self.throughput = rate if self.throughput is None else 0.9 * self.throughput + 0.1 * rate
+        return self.stamp(
+            "train", **{name: float(value.detach()) for name, value in terms.items()},
+            lr=self.optimizer.param_groups[0]["lr"], grad_norm=grad_norm, skipped=skipped,
+            protocol=batch["protocol"][0], points=int(batch["src_points"].shape[1]),
+            data_s=round(compute_start - fetch_start, 4), compute_s=round(end - compute_start, 4),
+            pairs_per_s=round(self.throughput, 3),
+        )
+
+    def validate(self, stop: StopFlag, bar) -> None:
+        """Validate on the fixed pairs, log the result and keep ``best.pt`` if it improved."""
+        if self.val_loader is None:
+            return
+        result = validate(self.step_model, self.val_loader, self.device, self.args, stop, self.geometry)
+        if result is None:  # a stop signal arrived mid-way
+            return
+        progress, value = self.progress, result[self.args.best_metric]
+        larger_is_better = BEST_METRICS[self.args.best_metric]
+        improved = math.isfinite(value) and (
+            progress.best_metric is None
+            or (value > progress.best_metric if larger_is_better else value < progress.best_metric)
+        )
+        if improved:
+            progress.best_metric, progress.best_step = value, progress.step
+        self.log.write(self.stamp("val", **result, best=improved))
+        if improved:
+            self.save("best.pt")
+        bar.write(
+            f"[val step {progress.step}] loss {result['val_loss']:.4f}  "
+            f"P/A/R {result['val_precision']:.3f}/{result['val_accuracy']:.3f}/{result['val_recall']:.3f}  "
+            f"L_R median {result['val_rot_median_deg']:.2f} mean {result['val_rot_mean_deg']:.2f} deg"
+            + ("  (best)" if improved else "")
+        )
+
+
+def start_run(args) -> TrainingRun:
+    """Everything the loop needs: model and optimiser (fresh, or restored from ``--resume``
+    with their schedule, counters and RNG states), the data and the log."""
     args.out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(args.device)
     if args.threads:
@@ -492,7 +611,6 @@ def train(args) -> int:
     workers = args.workers
     if workers is None:
         workers = min(12, max(0, (os.cpu_count() or 2) - 2)) if device.type == "cuda" else 2
-    amp = bool(args.amp and device.type == "cuda")
 
     resume_path = resolve_resume(args)
     checkpoint = torch.load(resume_path, map_location="cpu", weights_only=False) if resume_path else None
@@ -513,29 +631,60 @@ def train(args) -> int:
     model = LoGDescMatcher(model_config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, args))
-    progress = Progress()
-    if checkpoint is not None:
-        model.load_state_dict(checkpoint["model"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        for group in optimizer.param_groups:  # the CLI's lr wins (e.g. a resumed fine-tune)
-            group["initial_lr"] = args.lr
-        scheduler.load_state_dict(checkpoint["scheduler"])
-        scheduler.base_lrs = [args.lr for _ in scheduler.base_lrs]
-        progress = Progress(
-            step=int(checkpoint["step"]),
-            pairs_seen=int(checkpoint["pairs_seen"]),
-            wall_time_s=float(checkpoint["wall_time_s"]),
-            best_metric=checkpoint.get("best_metric") if checkpoint.get("best_metric_name", args.best_metric) == args.best_metric else None,
-            best_step=checkpoint.get("best_step"),
-        )
-        restore_rng_states(checkpoint["rng_states"])
-        # the scheduler's lambda closes over args: re-evaluate the lr at the restored step
-        for group, lr in zip(optimizer.param_groups, [args.lr * lr_factor(progress.step, args)]):
-            group["lr"] = lr
-        del checkpoint
-    step_model = torch.compile(model) if args.compile else model
+    progress = Progress() if checkpoint is None else _restore(checkpoint, model, optimizer, scheduler, args)
+    del checkpoint
 
-    # Data: ModelNet10 train + ModelNet40 subset; the validation split is carved by name.
+    geometry = model_config.geometry()
+    if args.geometry_on_device and geometry.edge_layout != "invariant":
+        raise SystemExit("--geometry-on-device: only the invariant networks' geometry has a torch port")
+    train_loader, val_loader, batches_per_epoch = _loaders(args, geometry, device, workers, progress.step)
+
+    log_path = args.out / "log.jsonl"
+    if resume_path is not None:
+        truncate_log(log_path, progress.step)
+    run = TrainingRun(
+        args=args, device=device, amp=bool(args.amp and device.type == "cuda"), model=model,
+        step_model=torch.compile(model) if args.compile else model, optimizer=optimizer, scheduler=scheduler,
+        progress=progress, geometry=geometry, train_loader=train_loader, val_loader=val_loader,
+        batches_per_epoch=batches_per_epoch, log=JsonlLog(log_path), resumed_from=resume_path,
+    )
+    run.log.write(run.stamp(
+        "resume" if resume_path else "start",
+        checkpoint=str(resume_path) if resume_path else None, device=str(device), workers=workers,
+        amp=run.amp, preset=args.preset, parameters=sum(p.numel() for p in model.parameters()),
+        train_shapes=len(train_loader.dataset), val_shapes=len(val_loader.dataset) if val_loader else 0,
+        batches_per_epoch=batches_per_epoch, git_commit=git_commit(),
+        args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+    ))
+    return run
+
+
+def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
+    """Load the model, Adam and schedule states and the RNG states; the counters to continue."""
+    model.load_state_dict(checkpoint["model"])
+    optimizer.load_state_dict(checkpoint["optimizer"])
+    for group in optimizer.param_groups:  # the CLI's lr wins (e.g. a resumed fine-tune)
+        group["initial_lr"] = args.lr
+    scheduler.load_state_dict(checkpoint["scheduler"])
+    scheduler.base_lrs = [args.lr for _ in scheduler.base_lrs]
+    same_metric = checkpoint.get("best_metric_name", args.best_metric) == args.best_metric
+    progress = Progress(
+        step=int(checkpoint["step"]),
+        pairs_seen=int(checkpoint["pairs_seen"]),
+        wall_time_s=float(checkpoint["wall_time_s"]),
+        best_metric=checkpoint.get("best_metric") if same_metric else None,
+        best_step=checkpoint.get("best_step"),
+    )
+    restore_rng_states(checkpoint["rng_states"])
+    # The scheduler's lambda closes over args: re-evaluate the lr at the restored step.
+    for group in optimizer.param_groups:
+        group["lr"] = args.lr * lr_factor(progress.step, args)
+    return progress
+
+
+def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: int):
+    """(train loader, validation loader or None, batches per epoch): ModelNet10 train + the
+    ModelNet40 subset, the validation split carved by shape name (:mod:`training.data`)."""
     shapes = split_training_shapes(load_training_sources(args.data_root), args.val_fraction, args.seed)
     mix = parse_protocol_mix(args.protocol_mix)
     schedule = ProtocolSchedule(
@@ -546,175 +695,88 @@ def train(args) -> int:
         early_points_per_cloud=args.early_points_per_cloud,
         early_steps=args.early_points_steps,
     )
-    geometry = model_config.geometry()
-    if args.geometry_on_device and geometry.edge_layout != "invariant":
-        raise SystemExit("--geometry-on-device: only the invariant networks' geometry has a torch port")
-    on_device = bool(args.geometry_on_device)
-    train_set = PairDataset(
-        shapes.train, args.seed, geometry_config=geometry, name="train", any_orientation=args.any_orientation,
-        geometry_on_device=on_device,
-    )
-    val_set = PairDataset(
-        shapes.val, args.seed, geometry_config=geometry, name="val", any_orientation=args.any_orientation,
-        geometry_on_device=on_device,
-    )
-    sampler = TrainBatchSampler(len(train_set), args.batch_size, schedule, args.seed, start_step=progress.step)
-    loader_options = dict(
-        num_workers=workers,
-        pin_memory=device.type == "cuda",
-        worker_init_fn=_worker_init if workers > 0 else None,
+    datasets = {
+        name: PairDataset(
+            split, args.seed, geometry_config=geometry, name=name, any_orientation=args.any_orientation,
+            geometry_on_device=bool(args.geometry_on_device),
+        )
+        for name, split in (("train", shapes.train), ("val", shapes.val))
+    }
+    sampler = TrainBatchSampler(len(datasets["train"]), args.batch_size, schedule, args.seed, start_step=start_step)
+    options = dict(
+        num_workers=workers, pin_memory=device.type == "cuda", worker_init_fn=_worker_init if workers > 0 else None,
     )
     train_loader = DataLoader(
-        train_set, batch_sampler=sampler, persistent_workers=workers > 0,
-        prefetch_factor=4 if workers > 0 else None, **loader_options,
+        datasets["train"], batch_sampler=sampler, persistent_workers=workers > 0,
+        prefetch_factor=4 if workers > 0 else None, **options,
     )
     val_loader = None
     if args.val_every > 0 and args.val_pairs > 0:
         keys = validation_keys(
-            len(val_set), args.val_pairs, mix, args.seed, args.val_points_per_cloud or args.points_per_cloud
+            len(datasets["val"]), args.val_pairs, mix, args.seed, args.val_points_per_cloud or args.points_per_cloud
         )
         val_loader = DataLoader(
-            val_set, batch_sampler=fixed_pair_batches(keys, args.val_batch_size or args.batch_size),
-            **loader_options,
+            datasets["val"], batch_sampler=fixed_pair_batches(keys, args.val_batch_size or args.batch_size), **options,
         )
+    return train_loader, val_loader, sampler.batches_per_epoch
 
-    log_path = args.out / "log.jsonl"
-    if resume_path is not None:
-        truncate_log(log_path, progress.step)
-    log = JsonlLog(log_path)
-    batches_per_epoch = sampler.batches_per_epoch
-    session_start = time.monotonic()
 
-    def wall_time() -> float:
-        return progress.wall_time_s + (time.monotonic() - session_start)
+def train(args) -> int:
+    """Run (or continue) training; returns the process exit code.
 
-    def stamp(kind: str, **extra) -> dict:
-        return {
-            "type": kind, "step": progress.step, "epoch": round(progress.step / batches_per_epoch, 4),
-            "pairs_seen": progress.pairs_seen, "wall_time_s": round(wall_time(), 3), **extra,
-        }
-
-    def save(name: str = "last.pt") -> None:
-        snapshot = Progress(progress.step, progress.pairs_seen, wall_time(), progress.best_metric, progress.best_step)
-        atomic_torch_save(checkpoint_dict(model, optimizer, scheduler, snapshot, args, model_config), args.out / name)
-
-    log.write(stamp(
-        "resume" if resume_path else "start",
-        checkpoint=str(resume_path) if resume_path else None, device=str(device), workers=workers,
-        amp=amp, preset=args.preset, parameters=sum(p.numel() for p in model.parameters()),
-        train_shapes=len(train_set), val_shapes=len(val_set), batches_per_epoch=batches_per_epoch,
-        git_commit=git_commit(), args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-    ))
-
-    def run_validation() -> None:
-        if val_loader is None:
-            return
-        result = validate(step_model, val_loader, device, args, stop, geometry)
-        if result is None:
-            return
-        value = result[args.best_metric]
-        better = BEST_METRICS[args.best_metric]
-        improved = math.isfinite(value) and (
-            progress.best_metric is None
-            or (value > progress.best_metric if better else value < progress.best_metric)
-        )
-        if improved:
-            progress.best_metric, progress.best_step = value, progress.step
-        log.write(stamp("val", **result, best=improved))
-        if improved:
-            save("best.pt")
-        bar.write(
-            f"[val step {progress.step}] loss {result['val_loss']:.4f}  "
-            f"P/A/R {result['val_precision']:.3f}/{result['val_accuracy']:.3f}/{result['val_recall']:.3f}  "
-            f"L_R median {result['val_rot_median_deg']:.2f} mean {result['val_rot_mean_deg']:.2f} deg"
-            + ("  (best)" if improved else "")
-        )
-
+    The loop: take the next batch of the fixed sequence, take one optimisation step, log it;
+    validate every ``--val-every`` steps (keeping ``best.pt``) and checkpoint every
+    ``--checkpoint-minutes``; stop at ``--max-steps``, after ``--max-minutes`` or on a signal,
+    always leaving a resumable ``last.pt``.
+    """
+    run = start_run(args)
     stop = StopFlag()
     stop.install()
-    reason = "max_steps"
+    reason, exit_code = "max_steps", 0
     last_checkpoint = time.monotonic()
-    last_validated = progress.step if resume_path else -1
-    throughput = None  # EMA of pairs/s
+    last_validated = run.progress.step if run.resumed_from else -1
     bar = tqdm(
-        total=args.max_steps, initial=progress.step, unit="step", dynamic_ncols=True,
+        total=args.max_steps, initial=run.progress.step, unit="step", dynamic_ncols=True,
         disable=args.no_progress, desc=f"train {args.preset}",
     )
-    step_model.train()
-    exit_code = 0
+    run.step_model.train()
     try:
-        iterator = iter(train_loader)
-        while args.max_steps is None or progress.step < args.max_steps:
-            if args.max_minutes is not None and time.monotonic() - session_start >= 60 * args.max_minutes:
-                reason = "max_minutes"
-                break
-            if stop:
-                reason = f"signal {stop.signal_name}"
-                break
+        batches = iter(run.train_loader)
+        while (stopping := run.reason_to_stop(stop)) is None:
             fetch_start = time.perf_counter()
             try:
-                batch = next(iterator)
+                batch = next(batches)
             except Exception:
                 if stop:  # a worker died of the same Ctrl-C: not an error
-                    reason = f"signal {stop.signal_name}"
+                    stopping = f"signal {stop.signal_name}"
                     break
                 raise
-            compute_start = time.perf_counter()
-            batch = to_device(batch, device, geometry)
-            outputs = forward(step_model, batch, amp)
-            terms = loss_terms(outputs, batch, args)
-            optimizer.zero_grad(set_to_none=True)
-            if not torch.isfinite(terms["loss"]):
-                # Skip the update but keep the step (the batch sequence stays aligned).
-                grad_norm = float("nan")
-                skipped = True
-            else:
-                terms["loss"].backward()
-                clip = args.grad_clip if args.grad_clip > 0 else float("inf")
-                grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), clip))
-                skipped = not math.isfinite(grad_norm)
-                if not skipped:
-                    optimizer.step()
-            scheduler.step()
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            end = time.perf_counter()
-            batch_size = int(batch["src_points"].shape[0])
-            progress.step += 1
-            progress.pairs_seen += batch_size
-            rate = batch_size / max(1e-9, end - fetch_start)
-            throughput = rate if throughput is None else 0.9 * throughput + 0.1 * rate
-            values = {name: float(value.detach()) for name, value in terms.items()}
-            lr = optimizer.param_groups[0]["lr"]
-            if progress.step % max(1, args.log_every) == 0 or skipped:
-                log.write(stamp(
-                    "train", **values, lr=lr, grad_norm=grad_norm, skipped=skipped,
-                    protocol=batch["protocol"][0], points=int(batch["src_points"].shape[1]),
-                    data_s=round(compute_start - fetch_start, 4), compute_s=round(end - compute_start, 4),
-                    pairs_per_s=round(throughput, 3),
-                ))
+            record = run.optimisation_step(batch, fetch_start)
+            if run.progress.step % max(1, args.log_every) == 0 or record["skipped"]:
+                run.log.write(record)
             bar.update(1)
-            bar.set_postfix(loss=f"{values['loss']:.3f}", lr=f"{lr:.2e}", pairs_s=f"{throughput:.1f}")
+            bar.set_postfix(loss=f"{record['loss']:.3f}", lr=f"{record['lr']:.2e}", pairs_s=f"{run.throughput:.1f}")
 
-            if args.val_every > 0 and progress.step % args.val_every == 0:
-                run_validation()
-                last_validated = progress.step
+            if args.val_every > 0 and run.progress.step % args.val_every == 0:
+                run.validate(stop, bar)
+                last_validated = run.progress.step
             if time.monotonic() - last_checkpoint >= 60 * args.checkpoint_minutes:
-                save()
+                run.save()
                 last_checkpoint = time.monotonic()
-                log.write(stamp("checkpoint", path="last.pt"))
-        if reason == "max_steps" and val_loader is not None and last_validated != progress.step:
-            run_validation()  # final validation, so best.pt reflects the end of the run
+                run.log.write(run.stamp("checkpoint", path="last.pt"))
+        reason = stopping
+        if reason == "max_steps" and run.val_loader is not None and last_validated != run.progress.step:
+            run.validate(stop, bar)  # final validation, so best.pt reflects the end of the run
     except KeyboardInterrupt:  # a second Ctrl-C
-        reason = "keyboard interrupt"
-        exit_code = 130
+        reason, exit_code = "keyboard interrupt", 130
     finally:
         bar.close()
-        save()
-        log.write(stamp("stop", reason=reason))
-        log.close()
+        run.save()
+        run.log.write(run.stamp("stop", reason=reason))
+        run.log.close()
         stop.uninstall()
-    print(f"stopped at step {progress.step} ({reason}); wall time {wall_time():.1f} s; checkpoint {args.out / 'last.pt'}")
+    print(f"stopped at step {run.progress.step} ({reason}); wall time {run.wall_time():.1f} s; "
+          f"checkpoint {args.out / 'last.pt'}")
     return exit_code
 
 
