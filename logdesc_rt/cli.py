@@ -46,6 +46,7 @@ ESTIMATOR_HELP = (
 )
 EPILOG = """\
 formats: PLY, PCD, XYZ/TXT/CSV (x y z in the first columns), NPY ((N, 3+) array), OFF; by suffix.
+LAS/LAZ and E57 with the optional extras: pip install "logdesc-rt[las]" / "logdesc-rt[e57]".
 
 working size: clouds larger than the model's training size (1024 points) are subsampled to it
 (farthest-point sampling) for the networks; verification, ICP, fitness and --write-aligned use
@@ -90,6 +91,17 @@ def _check_input(path: Path, what: str) -> None:
         raise ValueError(f"{what} {path}: no such file")
     if not os.access(path, os.R_OK):
         raise ValueError(f"{what} {path}: not readable")
+    _check_format_library(path, what)
+
+
+def _check_format_library(path: Path, what: str) -> None:
+    """LAS/LAZ/E57 need an optional library: say which extra to install, before the work."""
+    from .io import check_format_available
+
+    try:
+        check_format_available(path)
+    except LogdescError as error:
+        raise ValueError(f"{what}: {error}") from error
 
 
 def _check_output(path: Path, what: str, suffixes: tuple[str, ...]) -> None:
@@ -193,7 +205,7 @@ def _summary_line(result) -> str:
 
 
 def _command_register(args) -> int:
-    from .io import read_point_attributes, read_point_cloud, transform_attributes, write_point_cloud
+    from .io import read_point_attributes, read_point_cloud, transform_attributes, writable_attributes, write_point_cloud
 
     progress = _Progress(args.quiet)
     # 1. Everything that can fail without registering.
@@ -203,6 +215,7 @@ def _command_register(args) -> int:
         from .io import SUPPORTED_SUFFIXES
 
         _check_output(args.write_aligned, "--write-aligned", SUPPORTED_SUFFIXES)
+        _check_format_library(args.write_aligned, "--write-aligned")
     _check_plot(args.plot)
     config = _runtime_config(args)
     init = _read_init(args.init) if args.init is not None else None
@@ -218,8 +231,11 @@ def _command_register(args) -> int:
     if args.write_aligned is not None:
         progress(f"writing the aligned source to {args.write_aligned}")
         moved_attributes = transform_attributes(attributes, result.rotation)
-        if args.write_aligned.suffix.lower() == ".off":
-            moved_attributes = {}
+        kept = writable_attributes(args.write_aligned, moved_attributes)
+        if len(kept) < len(moved_attributes):
+            left_out = ", ".join(name for name in moved_attributes if name not in kept)
+            progress(f"{args.write_aligned.suffix} has no place for attribute(s) {left_out}: left out")
+        moved_attributes = kept
         write_point_cloud(args.write_aligned, source @ result.rotation.T + result.translation, moved_attributes)
     if args.plot is not None:
         from .plotting import plot_registration
@@ -457,6 +473,7 @@ def _command_align(args) -> int:
         from .io import ATTRIBUTE_SUFFIXES
 
         _check_output(args.merged, "--merged", ATTRIBUTE_SUFFIXES)
+        _check_format_library(args.merged, "--merged")
     if args.voxel is not None and not (np.isfinite(args.voxel) and args.voxel > 0):
         raise ValueError(f"--voxel {args.voxel}: must be a positive length in the scans' unit")
     if args.pairs is not None:

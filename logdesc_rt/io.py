@@ -1,4 +1,4 @@
-"""Read and write point-cloud files: PLY, PCD, XYZ/TXT/CSV, NPY and OFF.
+"""Read and write point-cloud files: PLY, PCD, XYZ/TXT/CSV, NPY, OFF; LAS/LAZ and E57 (extras).
 
 :func:`read_point_cloud` returns the x, y, z coordinates of a file as a float64 array of
 shape (N, 3), in the file's own units (metres for most scanners); colours, normals, faces
@@ -33,6 +33,15 @@ Formats (read times for 1M points on a slow 2-core machine in brackets):
         columns, extra columns ignored, an optional single header line, ``#`` comments [3 s].
     NPY: an (N, 3) or (N, >3) numeric array (first three columns), never unpickled.
     OFF: vertices of an (ST)(C)(N)OFF file; faces are ignored.
+    LAS/LAZ: through laspy and its lazrs backend, an optional extra (``pip install
+        "logdesc-rt[las]"``; :mod:`logdesc_rt.las`). Stored as scaled 32-bit integers, so
+        written coordinates read back within 2.5e-9 of the cloud's extent, not bit for bit.
+    E57: through pye57 (libE57Format), an optional extra (``pip install "logdesc-rt[e57]"``;
+        :mod:`logdesc_rt.e57`). Every scan of the file, its pose applied; written as one scan
+        (pye57 writes single precision: within about 6e-8 of the cloud's extent).
+
+Without the extra, reading or writing such a file raises PointCloudFileError naming the
+extra to install; :func:`check_format_available` says so before any work.
 """
 
 from __future__ import annotations
@@ -47,11 +56,15 @@ from typing import Callable
 
 import numpy as np
 
-from . import ply
+from . import e57, las, ply
 from .errors import LogdescError, PointCloudFileError
 from .validation import as_points
 
-SUPPORTED_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".off")
+CORE_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".off")
+"""Suffixes read and written with the run-time dependencies alone, float64 values exactly."""
+OPTIONAL_SUFFIXES: dict[str, str] = {".las": "las", ".laz": "las", ".e57": "e57"}
+"""Suffixes that need an optional extra (suffix -> extra name: ``pip install "logdesc-rt[las]"``)."""
+SUPPORTED_SUFFIXES: tuple[str, ...] = CORE_SUFFIXES + tuple(OPTIONAL_SUFFIXES)
 """File suffixes (lower case) that :func:`read_point_cloud` and :func:`write_point_cloud` accept."""
 
 # Errors that parsers (ours, including ply.PlyError, and numpy's) raise on malformed content;
@@ -111,6 +124,8 @@ def read_point_cloud(path: str | os.PathLike) -> np.ndarray:
         coordinates = reader(path)
     except LogdescError:
         raise
+    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+        raise _file_error(path, str(error)) from error
     except MemoryError as error:
         # Only a corrupt header (a huge element count) gets here for files that fit on disk.
         raise _file_error(path, "not enough memory to read it; is a point count in its header corrupt?") from error
@@ -132,13 +147,27 @@ def read_point_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
     PLY: every scalar property of the ``vertex`` element (e.g. nx ny nz, red green blue,
     alpha, intensity, confidence), each an (N,) array in its declared type, in header order.
+    LAS/LAZ: the extra-bytes dimensions, intensity, and red green blue where the point format
+    has colours. E57: intensity and red green blue where every scan has them.
     Other formats: an empty dict (their extra columns or fields are not read).
 
     Raises:
         PointCloudFileError: as :func:`read_point_cloud`.
     """
     path = Path(path)
-    if path.suffix.lower() != ".ply":
+    suffix = path.suffix.lower()
+    if suffix in OPTIONAL_SUFFIXES:
+        _check_readable_file(path)
+        codec = las if OPTIONAL_SUFFIXES[suffix] == "las" else e57
+        try:
+            return codec.read_attributes(path)
+        except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+            raise _file_error(path, str(error)) from error
+        except _PARSE_ERRORS as error:
+            raise _file_error(path, f"cannot parse as {suffix[1:].upper()}: {error}") from error
+        except OSError as error:
+            raise _file_error(path, f"cannot read: {error.strerror or error}") from error
+    if suffix != ".ply":
         return {}
     _check_readable_file(path)
     try:
@@ -174,7 +203,8 @@ def transform_attributes(attributes: dict[str, np.ndarray], rotation: np.ndarray
 def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.ndarray] | None = None) -> None:
     """Write an (N, 3) point cloud; the format follows the suffix (:data:`SUPPORTED_SUFFIXES`).
 
-    Every format stores float64 values exactly: PLY as binary little-endian ``double``
+    Every format but LAS/LAZ and E57 stores float64 values exactly (LAS: within 2.5e-9 of the
+    cloud's extent, E57: 6e-8; :mod:`logdesc_rt.las`, :mod:`logdesc_rt.e57`): PLY as binary little-endian ``double``
     x, y, z (CloudCompare, MeshLab and Open3D read it), NPY as a float64 (N, 3) array, and
     the text formats (PCD ascii, XYZ/TXT/CSV, OFF) with the shortest decimal that reads
     back to the same float64. A CSV file gets an ``x,y,z`` header line. An existing file
@@ -185,12 +215,15 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
         points: array-like (N, 3) of real numbers, N >= 1.
         attributes: optional name -> (N,) real array (e.g. from :func:`read_point_attributes`),
             written after x, y, z: PLY properties in the array's own type, PCD ascii fields,
-            extra columns of XYZ/TXT/CSV (named in the CSV header) and NPY (as float64). OFF
-            has no place for them: PointCloudFileError.
+            extra columns of XYZ/TXT/CSV (named in the CSV header) and NPY (as float64), LAS
+            standard dimensions or extra-bytes dimensions (:mod:`logdesc_rt.las`). E57 keeps
+            intensity and red, green, blue only (others: ValueError); OFF has no place for
+            them: PointCloudFileError. :func:`writable_attributes` says what a format keeps.
 
     Raises:
-        PointCloudFileError: unsupported suffix, the file cannot be written, or attributes
-            for OFF.
+        PointCloudFileError: unsupported suffix, the file cannot be written, attributes for
+            OFF, or the optional library of LAS/LAZ/E57 is not installed (the message names
+            the extra).
         PointCloudShapeError, NonFinitePointsError, TooFewPointsError: bad ``points``.
         ValueError: an attribute that is not an (N,) real array, or has a bad name.
     """
@@ -204,14 +237,57 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
     points = as_points(points, name="points")
     extra = _check_attributes(attributes or {}, len(points))
     if extra and path.suffix.lower() == ".off":
-        raise _file_error(path, "OFF has no per-point attributes; write PLY, PCD, XYZ/TXT/CSV or NPY instead")
+        raise _file_error(path, "OFF has no per-point attributes; write PLY, PCD, XYZ/TXT/CSV, NPY or LAS instead")
     try:
         if extra:
             _ATTRIBUTE_WRITERS[path.suffix.lower()](path, points, extra)
         else:
             writer(path, points)
+    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+        raise _file_error(path, str(error)) from error
     except OSError as error:
         raise _file_error(path, f"cannot write: {error.strerror or error}") from error
+
+
+def check_format_available(path: str | os.PathLike) -> None:
+    """Raise :class:`PointCloudFileError` unless ``path``'s format can be read and written here.
+
+    Checks the suffix, and for LAS/LAZ/E57 that their optional library is installed (the
+    message names the extra to install). Reads nothing: for checks before long work.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise _file_error(path, f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    try:
+        if suffix in (".las", ".laz"):
+            las.check_available(compressed=suffix == ".laz")
+        elif suffix == ".e57":
+            e57.check_available()
+    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+        raise _file_error(path, str(error)) from error
+
+
+def writable_attributes(path: str | os.PathLike, attributes: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The part of ``attributes`` that :func:`write_point_cloud` keeps, exactly, in ``path``'s
+    format: all of them for PLY, PCD, XYZ/TXT/CSV and NPY; none for OFF; intensity and
+    red / green / blue (0-255 integers) for E57; for LAS/LAZ all but those named like a standard
+    LAS dimension whose values do not fit its type (e.g. float ``intensity``)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".off":
+        return {}
+    if suffix == ".e57":
+        kept = {name: values for name, values in attributes.items() if name == "intensity"}
+        colours = {name: np.asarray(attributes[name]) for name in ("red", "green", "blue") if name in attributes}
+        if len(colours) == 3 and all(
+            values.min(initial=0) >= 0 and values.max(initial=0) <= 255 and np.array_equal(values, np.round(values))
+            for values in colours.values()
+        ):
+            kept.update(colours)
+        return kept
+    if suffix in (".las", ".laz"):
+        return {name: values for name, values in attributes.items() if las.fits_standard(name, np.asarray(values))}
+    return dict(attributes)
 
 
 def _check_attributes(attributes: dict, count: int) -> dict[str, np.ndarray]:
@@ -747,6 +823,7 @@ _READERS: dict[str, Callable[[Path], np.ndarray]] = {
     ".npy": _read_npy,
     ".off": _read_off,
 }
+_READERS.update({".las": las.read_xyz, ".laz": las.read_xyz, ".e57": e57.read_xyz})
 _ATTRIBUTE_WRITERS: dict[str, Callable[[Path, np.ndarray, dict[str, np.ndarray]], None]] = {
     ".ply": _write_ply_with_attributes,
     ".pcd": _write_pcd_with_attributes,
@@ -754,9 +831,12 @@ _ATTRIBUTE_WRITERS: dict[str, Callable[[Path, np.ndarray, dict[str, np.ndarray]]
     ".txt": _write_text_with_attributes,
     ".csv": _write_text_with_attributes,
     ".npy": _write_npy_with_attributes,
+    ".las": las.write,
+    ".laz": las.write,
 }
 ATTRIBUTE_SUFFIXES: tuple[str, ...] = tuple(_ATTRIBUTE_WRITERS)
-"""Suffixes :func:`write_point_cloud` writes per-point attributes into (all but OFF)."""
+"""Suffixes :func:`write_point_cloud` writes any per-point attribute into (all but OFF, E57)."""
+_ATTRIBUTE_WRITERS[".e57"] = e57.write
 _WRITERS: dict[str, Callable[[Path, np.ndarray], None]] = {
     ".ply": _write_ply,
     ".pcd": _write_pcd,
@@ -765,4 +845,7 @@ _WRITERS: dict[str, Callable[[Path, np.ndarray], None]] = {
     ".csv": _write_delimited_text,
     ".npy": _write_npy,
     ".off": _write_off,
+    ".las": lambda path, points: las.write(path, points, {}),
+    ".laz": lambda path, points: las.write(path, points, {}),
+    ".e57": lambda path, points: e57.write(path, points, {}),
 }

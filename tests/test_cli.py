@@ -107,7 +107,7 @@ def test_version_and_help_say_what_a_user_needs():
     ("arguments", "message"),
     [
         (("--write-aligned", "{tmp}/no/such/folder/out.ply"), "does not exist"),
-        (("--write-aligned", "{tmp}/out.las"), "unsupported suffix"),
+        (("--write-aligned", "{tmp}/out.obj"), "unsupported suffix"),
         (("--plot", "{tmp}/picture.jpg"), "unsupported suffix"),
         (("--config", "{tmp}/missing.json"), "cannot read"),
         (("--init", "{tmp}/missing.txt"), "no such file"),
@@ -349,3 +349,35 @@ def test_align_refuses_bad_input_before_the_work(many_files, tmp_path, arguments
     assert completed.returncode == 2, completed.stderr
     assert message in completed.stderr and "Traceback" not in completed.stderr
     assert "aligning" not in completed.stderr and not (tmp_path / "poses.json").exists()
+
+
+def test_register_reads_and_writes_las_and_e57(cloud_files, tmp_path):
+    pytest.importorskip("laspy")
+    pytest.importorskip("pye57")
+    folder, pair = cloud_files
+    write_point_cloud(tmp_path / "source.laz", pair.source)
+    write_point_cloud(tmp_path / "target.e57", pair.target)
+    aligned = tmp_path / "aligned.las"
+    completed = run_cli("register", str(tmp_path / "source.laz"), str(tmp_path / "target.e57"), "--json",
+                        "--write-aligned", str(aligned))
+    assert completed.returncode == 0, completed.stderr
+    transformation = np.array(json.loads(completed.stdout)["transformation"])
+    assert rotation_error_deg(transformation[:3, :3], pair.true_transformation[:3, :3]) < 2.0
+    np.testing.assert_allclose(read_point_cloud(aligned), pair.source @ transformation[:3, :3].T + transformation[:3, 3],
+                               atol=1e-8)
+
+
+@pytest.mark.parametrize(("module", "suffix", "extra"), [("laspy", ".las", "logdesc-rt[las]"),
+                                                         ("pye57", ".e57", "logdesc-rt[e57]")])
+def test_scanner_format_without_its_library_fails_before_the_work(cloud_files, tmp_path, module, suffix, extra):
+    folder, _ = cloud_files
+    hide = f"import sys; sys.modules[{module!r}] = None"
+    completed = run_cli("register", str(folder / "source.ply"), str(folder / "target.pcd"),
+                        "--write-aligned", str(tmp_path / f"aligned{suffix}"), prelude=hide)
+    assert completed.returncode == 2 and extra in completed.stderr, completed.stderr
+    assert STARTED not in completed.stderr and "Traceback" not in completed.stderr
+    (tmp_path / f"scan{suffix}").write_bytes(b"\0" * 64)
+    completed = run_cli("align", str(folder / "source.ply"), str(tmp_path / f"scan{suffix}"), "--out",
+                        str(tmp_path / "poses.json"), prelude=hide)
+    assert completed.returncode == 2 and extra in completed.stderr, completed.stderr
+    assert "aligning" not in completed.stderr

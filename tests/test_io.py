@@ -19,7 +19,7 @@ from logdesc_rt.errors import (
     PointCloudFileError,
     PointCloudShapeError,
 )
-from logdesc_rt.io import SUPPORTED_SUFFIXES, _lzf_decompress, read_point_cloud, write_point_cloud
+from logdesc_rt.io import CORE_SUFFIXES, SUPPORTED_SUFFIXES, _lzf_decompress, read_point_cloud, write_point_cloud
 from logdesc_rt.ply import SCALAR_TYPES, read_header
 from logdesc_rt.validation import MAX_ABS_COORDINATE
 
@@ -59,7 +59,9 @@ def path_and(path: Path, problem: str) -> str:
 # --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("suffix", SUPPORTED_SUFFIXES + (".PLY", ".Npy", ".CSV"))
+# Exact round trips: the formats of the run-time dependencies (LAS / E57 store scaled integers
+# or single precision: tests/test_io_scanner_formats.py).
+@pytest.mark.parametrize("suffix", CORE_SUFFIXES + (".PLY", ".Npy", ".CSV"))
 def test_round_trip_is_exact(tmp_path, suffix):
     path = tmp_path / f"cloud{suffix}"
     write_point_cloud(path, AWKWARD_POINTS)
@@ -78,7 +80,7 @@ def test_round_trip_is_exact(tmp_path, suffix):
     )
 )
 def test_round_trip_random_points(tmp_path, points):
-    for suffix in SUPPORTED_SUFFIXES:
+    for suffix in CORE_SUFFIXES:
         path = tmp_path / f"random{suffix}"
         write_point_cloud(path, points)
         np.testing.assert_array_equal(read_point_cloud(path), points)
@@ -748,9 +750,9 @@ def _seed_files() -> dict[str, list[bytes]]:
     """Valid files of each suffix, as bytes, for the fuzzer to corrupt."""
     import tempfile
 
-    seeds: dict[str, list[bytes]] = {suffix: [] for suffix in SUPPORTED_SUFFIXES}
+    seeds: dict[str, list[bytes]] = {suffix: [] for suffix in CORE_SUFFIXES}
     with tempfile.TemporaryDirectory() as folder:
-        for suffix in SUPPORTED_SUFFIXES:
+        for suffix in CORE_SUFFIXES:
             path = Path(folder) / f"seed{suffix}"
             write_point_cloud(path, EXPECTED_3)
             seeds[suffix].append(path.read_bytes())
@@ -806,7 +808,7 @@ TEXTISH = st.text(alphabet="0123456789 .,-+eE\nnaifOFplyx#\t", max_size=200).map
 
 # numpy's notice on Python-2 style NPY headers, which corrupted headers can resemble.
 @pytest.mark.filterwarnings("ignore:Reading `.npy` or `.npz` file required additional header parsing")
-@pytest.mark.parametrize("suffix", SUPPORTED_SUFFIXES)
+@pytest.mark.parametrize("suffix", CORE_SUFFIXES)
 def test_fuzz_corrupt_files_raise_only_logdesc_errors(tmp_path, suffix):
     path = tmp_path / f"fuzz{suffix}"
 
