@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from .batch import register_many
 from .config import RuntimeConfig
-from .io import read_point_cloud, write_point_cloud
+from .io import open3d_points, read_point_cloud, write_point_cloud
 from .sampling import voxel_downsample
 from .validation import as_points
 
@@ -197,7 +197,8 @@ def align(
     """Bring N scans into the frame of the first one.
 
     Args:
-        scans: N >= 2 point clouds: (Ni, 3) arrays or file paths, one unit for all.
+        scans: N >= 2 point clouds: (Ni, 3) arrays, Open3D PointClouds or file paths, one
+            unit for all.
         names: one name per scan for the result (default: the paths, or ``scan_000`` ...).
         config: candidate pairs, verification, robust loss and pruning (:class:`AlignConfig`).
         runtime_config: the registration pipeline's configuration (None: defaults).
@@ -563,8 +564,9 @@ def _load_scans(scans: Sequence, names: Sequence[str] | None) -> tuple[list[np.n
         if isinstance(scan, (str, os.PathLike)):
             clouds.append(read_point_cloud(scan))
             default_names.append(os.fspath(scan))
-        else:
-            clouds.append(as_points(scan, name=f"scans[{index}]"))
+        else:  # an array, or an Open3D PointCloud (its points)
+            points = open3d_points(scan)
+            clouds.append(as_points(scan if points is None else points, name=f"scans[{index}]"))
             default_names.append(f"scan_{index:03d}")
     names = default_names if names is None else [str(name) for name in names]
     if len(names) != len(clouds):

@@ -249,6 +249,37 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
         raise _file_error(path, f"cannot write: {error.strerror or error}") from error
 
 
+def open3d_points(cloud) -> np.ndarray | None:
+    """The points of an Open3D point cloud, or None when ``cloud`` is not one.
+
+    Accepts ``open3d.geometry.PointCloud`` and the tensor ``open3d.t.geometry.PointCloud``
+    (its ``positions``). Open3D is never imported here: it is looked up in ``sys.modules``,
+    since a caller holding an Open3D object has imported it already, so logdesc-rt runs and
+    imports as fast without Open3D installed.
+
+    Returns:
+        (N, 3) float64 copy of the points (user units), or None for anything else (arrays,
+        paths), which the caller handles as before.
+
+    Raises:
+        PointCloudShapeError: a tensor point cloud without positions.
+    """
+    import sys
+
+    open3d = sys.modules.get("open3d")
+    if open3d is None:
+        return None
+    if isinstance(cloud, open3d.geometry.PointCloud):
+        return np.array(cloud.points, dtype=np.float64).reshape(-1, 3)
+    if isinstance(cloud, open3d.t.geometry.PointCloud):
+        if "positions" not in cloud.point:
+            from .errors import PointCloudShapeError
+
+            raise PointCloudShapeError("Open3D tensor PointCloud has no 'positions' attribute")
+        return np.array(cloud.point.positions.cpu().numpy(), dtype=np.float64).reshape(-1, 3)
+    return None
+
+
 def check_format_available(path: str | os.PathLike) -> None:
     """Raise :class:`PointCloudFileError` unless ``path``'s format can be read and written here.
 

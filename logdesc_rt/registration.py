@@ -32,7 +32,7 @@ import numpy as np
 
 from .errors import RegistrationError
 from .geometry import PointGeometry, compute_geometry
-from .io import read_point_cloud
+from .io import open3d_points, read_point_cloud
 from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
@@ -357,8 +357,9 @@ class Registrar:
         """Estimate the rigid transform that maps ``source`` onto ``target``, and judge it.
 
         Args:
-            source, target: (N, 3) / (M, 3) arrays or point-cloud file paths (PLY, PCD,
-                XYZ/TXT/CSV, NPY, OFF), any unit, any placement.
+            source, target: (N, 3) / (M, 3) arrays, Open3D PointClouds (legacy or tensor), or
+                point-cloud file paths (PLY, PCD, XYZ/TXT/CSV, NPY, OFF; LAS/LAZ, E57 with the
+                extras), any unit, any placement.
             estimator: "auto" (default: every candidate estimator's pose is verified on the
                 full clouds and the best kept), or "fsr" (the paper's), "svd"
                 (confidence-weighted, all matches) or "ransac": that estimator's pose, still
@@ -643,6 +644,9 @@ class Registrar:
     def _load(self, cloud, name: str) -> np.ndarray:
         if isinstance(cloud, (str, Path)):
             cloud = read_point_cloud(cloud)
+        else:  # an Open3D PointCloud becomes its (N, 3) points; arrays pass as they are
+            points = open3d_points(cloud)
+            cloud = cloud if points is None else points
         points = as_points(cloud, name=name, min_points=self.manifest.geometry.min_points)
         check_not_degenerate(points, name=name)
         return points
