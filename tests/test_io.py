@@ -19,8 +19,9 @@ from logdesc_rt.errors import (
     PointCloudFileError,
     PointCloudShapeError,
 )
-from logdesc_rt.io import CORE_SUFFIXES, SUPPORTED_SUFFIXES, _lzf_decompress, read_point_cloud, write_point_cloud
-from logdesc_rt.ply import SCALAR_TYPES, read_header
+from logdesc_rt.io import CORE_SUFFIXES, SUPPORTED_SUFFIXES, read_point_cloud, write_point_cloud
+from logdesc_rt.io.pcd import lzf_decompress as _lzf_decompress
+from logdesc_rt.io.ply import SCALAR_TYPES, read_header
 from logdesc_rt.validation import MAX_ABS_COORDINATE
 
 DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -243,3 +244,57 @@ def test_laz_without_a_laz_backend_names_the_extra(tmp_path, monkeypatch):
         read_point_cloud(tmp_path / "cloud.laz")
     write_point_cloud(tmp_path / "cloud.las", _cloud(12))  # plain LAS needs no backend
     assert read_point_cloud(tmp_path / "cloud.las").shape == (300, 3)
+
+
+# ----------------------------------------------------------------------------- corrupt counts
+def _read_in_subprocess(path: Path) -> subprocess.CompletedProcess:
+    """read_point_cloud in a fresh interpreter: a native abort (lazrs allocating terabytes)
+    fails the test instead of killing the test run."""
+    code = (
+        "import sys\nfrom logdesc_rt.io import read_point_cloud\nfrom logdesc_rt.errors import PointCloudFileError\n"
+        "try:\n    read_point_cloud(sys.argv[1])\nexcept PointCloudFileError as error:\n    print(error)\n"
+    )
+    return subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=60)
+
+
+def _corrupt(path: Path, out: Path, position: int, value: bytes) -> Path:
+    data = bytearray(path.read_bytes())
+    data[position : position + len(value)] = value
+    out.write_bytes(bytes(data))
+    return out
+
+
+@needs_laspy
+def test_las_corrupt_counts_fail_fast(tmp_path):
+    import struct
+
+    write_point_cloud(tmp_path / "good.las", _cloud(13, count=20))
+    good = tmp_path / "good.las"
+    # Number of VLRs (uint32 at byte 100) made huge: laspy alone would loop over absent records.
+    completed = _read_in_subprocess(_corrupt(good, tmp_path / "vlrs.las", 100, struct.pack("<I", 0xFF000000)))
+    assert completed.returncode == 0 and "VLRs" in completed.stdout, completed.stderr
+    # Point count (LAS 1.4, uint64 at byte 247) beyond the file: truncated, said so.
+    completed = _read_in_subprocess(_corrupt(good, tmp_path / "count.las", 247, struct.pack("<Q", 10**9)))
+    assert completed.returncode == 0 and "truncated" in completed.stdout, completed.stderr
+
+
+@needs_laspy
+def test_laz_corrupt_chunk_tables_fail_without_crashing(tmp_path):
+    import struct
+
+    good = tmp_path / "good.laz"
+    write_point_cloud(good, _cloud(14, count=20))
+    data = good.read_bytes()
+    header_size, offset = struct.unpack_from("<HI", data, 94)
+    # The laszip VLR (the only VLR) holds the chunk size at byte 12 of its data.
+    chunk_size_at = header_size + 54 + 12
+    completed = _read_in_subprocess(_corrupt(good, tmp_path / "chunk.laz", chunk_size_at, struct.pack("<I", 0x7F000000)))
+    assert completed.returncode == 0 and "chunk size" in completed.stdout, completed.stderr
+    # The chunk table (at the offset stored in the first 8 bytes of the point data) starts
+    # with a version and the number of chunks.
+    table = struct.unpack_from("<q", data, offset)[0]
+    completed = _read_in_subprocess(_corrupt(good, tmp_path / "table.laz", table + 4, struct.pack("<I", 0x7F000001)))
+    assert completed.returncode == 0 and "chunk table" in completed.stdout, completed.stderr
+    # And LAZ's point count, like LAS's, is held to the file's size.
+    completed = _read_in_subprocess(_corrupt(good, tmp_path / "count.laz", 247, struct.pack("<Q", 10**12)))
+    assert completed.returncode == 0 and "corrupt point count" in completed.stdout, completed.stderr

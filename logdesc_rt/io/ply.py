@@ -1,4 +1,4 @@
-"""A small PLY codec: parse the header, read scalar properties of one element, write x, y, z.
+"""PLY: a small codec of our own (header, scalar properties of one element) and the file readers / writers.
 
 Why our own: ``plyfile`` is GPL-3.0-or-later, which an MIT package cannot ship as a
 run-time dependency, and the part of PLY we need (the vertex coordinates) is simple enough
@@ -32,9 +32,12 @@ import re
 import struct
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import BinaryIO, Iterable, Sequence
 
 import numpy as np
+
+from ._common import file_error
 
 # PLY scalar type names (the 1994 spec's names and the sized aliases) -> NumPy kind.
 SCALAR_TYPES: dict[str, str] = {
@@ -619,3 +622,57 @@ def write_binary_xyz(file: BinaryIO, points: np.ndarray, comments: Iterable[str]
     lines.append("end_header")
     file.write(("\n".join(lines) + "\n").encode("ascii"))
     file.write(points.data)
+
+
+# ----------------------------------------------------------------------------- files
+def read(path: Path) -> np.ndarray:
+    """Vertex x, y, z of a PLY file: (N, 3) in the file's dtype (float32 usually)."""
+    with path.open("rb") as file:
+        if file.read(3) != b"ply":
+            raise file_error(path, "not a PLY file (it does not start with 'ply')")
+        file.seek(0)
+        header = read_header(file)
+        vertex = header.element("vertex")
+        if vertex is None:
+            raise file_error(
+                path, f"has no 'vertex' element (elements: {', '.join(header.element_names) or 'none'})"
+            )
+        missing = [axis for axis in ("x", "y", "z") if vertex.property(axis) is None]
+        if missing:
+            raise file_error(
+                path,
+                f"vertex element lacks propert{'y' if len(missing) == 1 else 'ies'} "
+                f"{', '.join(missing)} (has: {', '.join(vertex.property_names) or 'none'})",
+            )
+        return np.column_stack(read_scalar_properties(file, header, "vertex", ("x", "y", "z")))
+
+
+def write(path: Path, points: np.ndarray) -> None:
+    with path.open("wb") as file:
+        write_binary_xyz(file, points, comments=["written by logdesc-rt"])
+
+
+_PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+                   "f4": "float", "f8": "double"}
+
+
+def write_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    """Binary little-endian PLY: double x, y, z, then each attribute in its own type."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    for name, values in attributes.items():
+        code = values.dtype.str[1:]
+        if code not in _PLY_TYPE_NAMES:  # int64, float16, ...: widest PLY type of the kind
+            code = "f8" if values.dtype.kind == "f" else ("i4" if values.dtype.kind == "i" else "u4")
+        fields.append((name, "<" + code))
+    table = np.empty(len(points), dtype=fields)
+    for column, axis in enumerate("xyz"):
+        table[axis] = points[:, column]
+    for name, values in attributes.items():
+        table[name] = values
+    lines = ["ply", "format binary_little_endian 1.0", "comment written by logdesc-rt",
+             f"element vertex {len(points)}"]
+    lines += [f"property {_PLY_TYPE_NAMES[code[1:]]} {name}" for name, code in fields]
+    lines.append("end_header")
+    with path.open("wb") as file:
+        file.write(("\n".join(lines) + "\n").encode("ascii"))
+        file.write(table.tobytes())

@@ -26,6 +26,7 @@ Errors are raised as plain exceptions here; :mod:`logdesc_rt.io` turns them into
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -57,21 +58,97 @@ def check_available(compressed: bool) -> None:
         raise MissingLibraryError(f"LAZ files need a LAZ backend for laspy (lazrs or laszip): {INSTALL_HINT}")
 
 
+# Header layout (LAS 1.0-1.4 public header block, little-endian): the fields checked before
+# laspy sees the file, so that a corrupt count fails fast instead of making laspy loop over
+# millions of absent records or lazrs allocate terabytes.
+_MIN_HEADER_SIZE = 227
+_VLR_HEADER_SIZE = 54
+_EVLR_HEADER_SIZE = 60
+# A LAZ stream decompresses to at most this many times its size (LAZ reaches ~10-20x on real
+# data; identical points compress further, but not by three orders of magnitude).
+_MAX_LAZ_RATIO = 1000
+_MIN_DECOMPRESSED_LIMIT = 1 << 26
+_LAZ_DEFAULT_CHUNK = 50_000  # points per chunk laszip writes by default
+
+
+def _check_header(path: Path) -> None:
+    """Raise ValueError when the header's counts cannot fit the file (truncated or corrupt)."""
+    size = path.stat().st_size
+    with path.open("rb") as file:
+        head = file.read(375)
+    if len(head) < _MIN_HEADER_SIZE:
+        raise ValueError(f"truncated: a LAS header needs {_MIN_HEADER_SIZE} bytes, the file has {len(head)}")
+    minor = head[25]
+    header_size, offset, vlr_count = struct.unpack_from("<HII", head, 94)
+    point_format, record_length, count = struct.unpack_from("<BHI", head, 104)
+    if minor >= 4 and len(head) >= 255:
+        count = struct.unpack_from("<Q", head, 247)[0] or count
+        evlr_start, evlr_count = struct.unpack_from("<QI", head, 235)
+        if evlr_count and evlr_start + evlr_count * _EVLR_HEADER_SIZE > size:
+            raise ValueError(f"header announces {evlr_count} extended VLRs at byte {evlr_start}: beyond the file's end")
+    if not _MIN_HEADER_SIZE <= header_size <= size or not header_size <= offset <= size:
+        raise ValueError(f"header size {header_size} / point data offset {offset} do not fit a {size}-byte file")
+    if vlr_count * _VLR_HEADER_SIZE > offset - header_size:
+        raise ValueError(f"header announces {vlr_count} VLRs, which cannot fit before the point data at byte {offset}")
+    points_bytes = count * record_length
+    if point_format & 0xC0:  # compressed (LAZ): bit 7 (or 6) of the format id
+        if points_bytes > max(_MAX_LAZ_RATIO * size, _MIN_DECOMPRESSED_LIMIT):
+            raise ValueError(f"header announces {count} points of {record_length} bytes in a {size}-byte LAZ file: "
+                             "a corrupt point count")
+        _check_laz_tables(path, size, header_size, offset, vlr_count, count)
+    elif offset + points_bytes > size:
+        raise ValueError(f"truncated: {count} points of {record_length} bytes need {offset + points_bytes} bytes, "
+                         f"the file has {size}")
+
+
+def _check_laz_tables(path: Path, size: int, header_size: int, offset: int, vlr_count: int, count: int) -> None:
+    """The laszip VLR's chunk size and the chunk table's chunk count must fit ``count`` points:
+    lazrs allocates by them before it reads anything, and aborts the process when it cannot."""
+    with path.open("rb") as file:
+        file.seek(header_size)
+        vlrs = file.read(offset - header_size)
+        file.seek(offset)
+        table_field = file.read(8)
+        table_offset = struct.unpack("<q", table_field)[0] if len(table_field) == 8 else -1
+        table = b""
+        if 0 < table_offset <= size - 8:
+            file.seek(table_offset)
+            table = file.read(8)
+    position = 0
+    for _ in range(vlr_count):
+        if position + _VLR_HEADER_SIZE > len(vlrs):
+            raise ValueError("truncated VLRs")
+        user = vlrs[position + 2 : position + 18].rstrip(b"\0")
+        record_id, length = struct.unpack_from("<HH", vlrs, position + 18)
+        data = vlrs[position + _VLR_HEADER_SIZE : position + _VLR_HEADER_SIZE + length]
+        if user == b"laszip encoded" and record_id == 22204 and len(data) >= 16:
+            chunk_size = struct.unpack_from("<I", data, 12)[0]
+            if chunk_size != 0xFFFFFFFF and chunk_size > max(count, _LAZ_DEFAULT_CHUNK):
+                raise ValueError(f"laszip VLR: chunk size {chunk_size} for {count} points, a corrupt value")
+        position += _VLR_HEADER_SIZE + length
+    if len(table) == 8:
+        chunks = struct.unpack_from("<I", table, 4)[0]
+        if chunks > count + 1:
+            raise ValueError(f"LAZ chunk table announces {chunks} chunks for {count} points, a corrupt value")
+
+
 def _read(path: Path):
-    """The file's LasData, after checking the signature (so a wrong file says so)."""
+    """The file's LasData, after checking the signature and the header's counts."""
     with path.open("rb") as file:
         signature = file.read(4)
     if signature != MAGIC:
         raise ValueError(f"not a LAS/LAZ file (it starts with {signature!r}, not {MAGIC!r})")
     check_available(compressed=path.suffix.lower() == ".laz")
+    _check_header(path)
     laspy = _laspy()
     try:
         return laspy.read(path)
-    except (OSError, MemoryError):
+    except (OSError, MemoryError, KeyboardInterrupt, SystemExit):
         raise
-    except Exception as error:
+    except BaseException as error:
         # laspy raises LaspyException, its LAZ backends their own errors (lazrs.LazrsError on a
-        # truncated LAZ stream) and NumPy ValueErrors: all mean corrupt content here.
+        # truncated LAZ stream; a Rust panic arrives as pyo3's PanicException, a BaseException)
+        # and NumPy ValueErrors: all mean corrupt content here.
         raise ValueError(f"{type(error).__name__}: {error}") from error
 
 
