@@ -16,7 +16,7 @@ from logdesc_rt.metrics import rotation_error_deg
 
 def run_cli(*arguments: str, prelude: str = "") -> subprocess.CompletedProcess:
     """Run the CLI in a fresh interpreter; ``prelude`` runs first (e.g. to hide a module)."""
-    code = f"{prelude}\nimport sys\nfrom logdesc_rt.cli import main\nsys.exit(main(sys.argv[1:]))"
+    code = f"{prelude}\nimport sys\nfrom logdesc_rt.tools.cli import main\nsys.exit(main(sys.argv[1:]))"
     return subprocess.run([sys.executable, "-c", code, *arguments], capture_output=True, text=True, timeout=300)
 
 

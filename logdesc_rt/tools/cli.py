@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LogdescError
-from .metrics import rotation_error_deg
+from ..errors import LogdescError
+from ..metrics import rotation_error_deg
 
 EXIT_OK = 0
 EXIT_ERROR = 2
@@ -76,14 +76,14 @@ class _Progress:
 
 
 def _version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 
 
 # ----------------------------------------------------------------------------- checks before work
 def _check_input(path: Path, what: str) -> None:
-    from .io import SUPPORTED_SUFFIXES
+    from ..io import SUPPORTED_SUFFIXES
 
     if path.suffix.lower() not in SUPPORTED_SUFFIXES:
         raise ValueError(f"{what} {path}: unsupported suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
@@ -96,7 +96,7 @@ def _check_input(path: Path, what: str) -> None:
 
 def _check_format_library(path: Path, what: str) -> None:
     """LAS/LAZ/E57 need an optional library: say which extra to install, before the work."""
-    from .io import check_format_available
+    from ..io import check_format_available
 
     try:
         check_format_available(path)
@@ -128,9 +128,9 @@ def _check_plot(path: Path | None) -> None:
 
 
 def _read_init(path: Path) -> np.ndarray:
-    """A (4, 4) initial guess from .json (a 4x4 list, or {"transformation": ...} as --json
+    """A (4, 4) initial guess from ..json (a 4x4 list, or {"transformation": ...} as --json
     prints), .npy, or whitespace-separated text."""
-    from .pose.evaluation import check_rigid_transformation
+    from ..pose.evaluation import check_rigid_transformation
 
     if not path.is_file():
         raise ValueError(f"--init {path}: no such file")
@@ -149,7 +149,7 @@ def _read_init(path: Path) -> np.ndarray:
 
 def _runtime_config(args):
     """The RuntimeConfig from --config FILE (partial JSON) with the flags applied over it."""
-    from .config import RuntimeConfig
+    from ..config import RuntimeConfig
 
     config = RuntimeConfig()
     if getattr(args, "config", None) is not None:
@@ -164,7 +164,7 @@ def _runtime_config(args):
 
 
 def _registrar(args, config=None):
-    from .registration import Registrar
+    from ..registration import Registrar
 
     return Registrar(
         model_dir=args.model,
@@ -205,14 +205,14 @@ def _summary_line(result) -> str:
 
 
 def _command_register(args) -> int:
-    from .io import read_point_attributes, read_point_cloud, transform_attributes, writable_attributes, write_point_cloud
+    from ..io import read_point_attributes, read_point_cloud, transform_attributes, writable_attributes, write_point_cloud
 
     progress = _Progress(args.quiet)
     # 1. Everything that can fail without registering.
     _check_input(args.source, "source")
     _check_input(args.target, "target")
     if args.write_aligned is not None:
-        from .io import SUPPORTED_SUFFIXES
+        from ..io import SUPPORTED_SUFFIXES
 
         _check_output(args.write_aligned, "--write-aligned", SUPPORTED_SUFFIXES)
         _check_format_library(args.write_aligned, "--write-aligned")
@@ -262,7 +262,7 @@ def _command_register(args) -> int:
 
 
 def _command_demo(args) -> int:
-    from .demo import make_demo_pair
+    from ..demo import make_demo_pair
 
     progress = _Progress(args.quiet)
     _check_plot(args.plot)
@@ -298,7 +298,7 @@ def _command_demo(args) -> int:
 
 
 def _command_describe(args) -> int:
-    from .io import read_point_cloud
+    from ..io import read_point_cloud
 
     _check_input(args.cloud, "cloud")
     out = args.out or Path(args.cloud).with_suffix(".descriptors.npz")
@@ -395,7 +395,7 @@ def _record_line(record: dict) -> str:
 
 
 def _command_register_many(args) -> int:
-    from .batch import register_many
+    from ..batch import register_many
 
     progress = _Progress(args.quiet)
     # 1. Everything that can fail without registering.
@@ -456,7 +456,7 @@ def _command_register_many(args) -> int:
 
 
 def _command_align(args) -> int:
-    from .align import AlignConfig, align, merge_scans
+    from ..align import AlignConfig, align, merge_scans
 
     progress = _Progress(args.quiet)
     # 1. Everything that can fail without registering.
@@ -470,7 +470,7 @@ def _command_align(args) -> int:
         raise ValueError(f"scan {repeated[0]} is given more than once")
     _check_output(args.out, "--out", (".json",))
     if args.merged is not None:
-        from .io import ATTRIBUTE_SUFFIXES
+        from ..io import ATTRIBUTE_SUFFIXES
 
         _check_output(args.merged, "--merged", ATTRIBUTE_SUFFIXES)
         _check_format_library(args.merged, "--merged")
@@ -505,7 +505,7 @@ def _command_align(args) -> int:
     if args.merged is not None or args.plot is not None:
         points, scan = merge_scans(args.scans, result, args.voxel)
         if args.merged is not None:
-            from .io import write_point_cloud
+            from ..io import write_point_cloud
 
             progress(f"writing the merged cloud ({len(points)} points) to {args.merged}")
             write_point_cloud(args.merged, points, attributes={"scan": scan})
@@ -584,7 +584,7 @@ def _add_registration_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .io import SUPPORTED_SUFFIXES
+    from ..io import SUPPORTED_SUFFIXES
 
     formats = ", ".join(SUPPORTED_SUFFIXES)
     parser = argparse.ArgumentParser(
