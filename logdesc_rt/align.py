@@ -544,7 +544,8 @@ def merge_scans(
 
 def write_merged(path: str | os.PathLike, scans: Sequence, result: AlignmentResult, voxel_size: float | None = None) -> int:
     """Write :func:`merge_scans`'s cloud with a per-point ``scan`` index (any format
-    :func:`~logdesc_rt.write_point_cloud` writes with attributes: PLY, PCD, XYZ/TXT/CSV, NPY).
+    :func:`~logdesc_rt.write_point_cloud` writes with attributes: PLY, PCD, XYZ/TXT/CSV, NPY,
+    LAS/LAZ; ``logdesc_rt.io.ATTRIBUTE_SUFFIXES``).
 
     Returns:
         The number of points written.
