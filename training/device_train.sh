@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# One prepared training run for a lent GPU machine: continue v3 from its committed checkpoint for
+# a fixed number of minutes and bring back the checkpoints and the log. Nothing exploratory.
+#
+# Here, first (the device tool carries at most 64 MiB, so the shared data travels packed):
+#     python training/pack_data.py .device_pack            # about 20 MiB, training shapes only
+# Then, through the device tool, from the repository root (carry .device_pack):
+#     bash training/device_train.sh
+# and afterwards, here: copy $OUT/run/last.pt (and best.pt, log.jsonl) next to the committed
+# checkpoint, evaluate with `python -m training.evaluate ... --split val [--any-orientation]`.
+#
+# Environment overrides (defaults in brackets), so the same script is tested on the CPU:
+#   RESUME [training/checkpoints/v3_cpu_last.pt]  DEVICE [cuda]  MINUTES [9]  BATCH [48]
+#   WORKERS [4]  DATA [.device_pack]  OUT [$OUT, or runs/device]  EXTRA [--amp]
+# The geometry runs on the GPU with the batch (--geometry-on-device: the torch port of the
+# NumPy reference, tests/test_geometry_torch.py), so a few workers only draw pairs.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+resume=${RESUME:-training/checkpoints/v3_cpu_last.pt}
+out=${OUT:-runs/device}/run
+mkdir -p "$out"
+python -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
+python -m training.train \
+    --preset v3 --resume "$resume" --out "$out" \
+    --device "${DEVICE:-cuda}" --geometry-on-device --workers "${WORKERS:-4}" \
+    --batch-size "${BATCH:-48}" --points-per-cloud 1024 \
+    --max-minutes "${MINUTES:-9}" --checkpoint-minutes 2 --val-every 300 --val-pairs 128 \
+    --max-steps 3000 --decay-steps 3000 --lr 1e-3 --warmup-steps 100 \
+    --data-root "${DATA:-.device_pack}" --no-progress --log-every 20 ${EXTRA:---amp}
+ls -la "$out"
