@@ -3,7 +3,9 @@
 # a fixed number of minutes and bring back the checkpoints and the log. Nothing exploratory.
 #
 # Here, first (the device tool carries at most 64 MiB, so the shared data travels packed):
-#     python training/pack_data.py .device_pack            # about 20 MiB, training shapes only
+#     python training/pack_data.py .device_pack --decimals 4   # about 27 MiB, training shapes only
+# (the working tree travels too, and tree + .device_pack must stay under 64 MiB: about 61 MiB
+# at this commit; check with `git ls-files -z | xargs -0 du -cb | tail -1; du -sb .device_pack`)
 # Then, through the device tool, from the repository root (carry .device_pack):
 #     bash training/device_train.sh
 # and afterwards, here: copy $OUT/run/last.pt (and best.pt, log.jsonl) next to the committed
@@ -27,5 +29,5 @@ python -m training.train \
     --batch-size "${BATCH:-48}" --points-per-cloud 1024 \
     --max-minutes "${MINUTES:-9}" --checkpoint-minutes 2 --val-every 300 --val-pairs 128 \
     --max-steps 3000 --decay-steps 3000 --lr 1e-3 --warmup-steps 100 \
-    --data-root "${DATA:-.device_pack}" --no-progress --log-every 20 ${EXTRA:---amp}
+    --data-root "${DATA:-.device_pack}" --no-progress --log-every 20 ${EXTRA---amp}
 ls -la "$out"
