@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-EDGE_FEATURE_CHANNELS = 15
+from ..config import EDGE_CHANNELS
+
+EDGE_FEATURE_CHANNELS = EDGE_CHANNELS["paper"]  # the layout above; one number for all
 
 
 def edge_features(

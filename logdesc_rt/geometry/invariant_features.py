@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import numpy as np
 
-INVARIANT_EDGE_CHANNELS = 11
+from ..config import EDGE_CHANNELS
+
+INVARIANT_EDGE_CHANNELS = EDGE_CHANNELS["invariant"]  # the layout below; one number for all
 
 
 def invariant_edge_features(
