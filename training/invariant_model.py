@@ -119,8 +119,6 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
     return F.scaled_dot_product_attention(query, key, value, scale=1.0)
 
 
-
-
 class _Update(nn.Module):
     """LoGDesc's residual update: x <- x + LayerNorm(MLP([x, LayerNorm(merge(message))]))."""
 

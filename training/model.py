@@ -95,8 +95,6 @@ class RotaryEncoding3D(nn.Module):
 # --------------------------------------------------------------------------------------------
 
 
-
-
 class AttentionalLayer(nn.Module):
     """One attention layer with the LoGDesc residual structure.
 
