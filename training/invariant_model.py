@@ -35,17 +35,18 @@ from torch import nn
 from .config import ModelConfig
 from .layers import edge_convolutions, merge_heads, split_heads
 
-DISTANCE_CHANNELS = 5
-# Monomials n^alpha with |alpha| = 2 and 4 and their multinomial coefficients p! / alpha!.
-_EXPONENTS_2 = [(a, b, 2 - a - b) for a in range(3) for b in range(3 - a)]
-_EXPONENTS_4 = [(a, b, 4 - a - b) for a in range(5) for b in range(5 - a)]
-NORMAL_CHANNELS = len(_EXPONENTS_2) + len(_EXPONENTS_4)  # 6 + 15
+
+def _monomials(power: int) -> tuple[list[tuple[int, int, int]], torch.Tensor]:
+    """Exponents alpha with |alpha| = ``power`` and the square roots of their multinomial
+    coefficients p! / alpha!, so that sum_alpha (w_alpha n^alpha)(w_alpha m^alpha) = (n . m)^p."""
+    exponents = [(a, b, power - a - b) for a in range(power + 1) for b in range(power + 1 - a)]
+    weights = [math.sqrt(math.factorial(power) / math.prod(math.factorial(e) for e in alpha)) for alpha in exponents]
+    return exponents, torch.tensor(weights)
 
 
-def _monomial_weights(exponents: list[tuple[int, int, int]], power: int) -> torch.Tensor:
-    return torch.tensor(
-        [math.sqrt(math.factorial(power) / math.prod(math.factorial(e) for e in alpha)) for alpha in exponents]
-    )
+# Built once at import: the normal channels of every layer and call read these constants.
+_MONOMIALS_2 = _monomials(2)  # 6 channels
+_MONOMIALS_4 = _monomials(4)  # 15 channels
 
 
 def distance_channels(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -77,14 +78,13 @@ def normal_channels(normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         degree4: (B, N, 15) with degree4[i] . degree4[j] = (n_i . n_j)^4.
     """
 
-    def monomials(exponents: list[tuple[int, int, int]], power: int) -> torch.Tensor:
-        weights = _monomial_weights(exponents, power).to(normals)
+    def monomials(exponents: list[tuple[int, int, int]], weights: torch.Tensor) -> torch.Tensor:
         columns = [
             normals[..., 0] ** a * normals[..., 1] ** b * normals[..., 2] ** c for a, b, c in exponents
         ]
-        return torch.stack(columns, dim=-1) * weights
+        return torch.stack(columns, dim=-1) * weights.to(normals)
 
-    return monomials(_EXPONENTS_2, 2), monomials(_EXPONENTS_4, 4)
+    return monomials(*_MONOMIALS_2), monomials(*_MONOMIALS_4)
 
 
 class _ExportedAttention(torch.autograd.Function):
