@@ -43,6 +43,11 @@ NORMALS = ("shipped umbrella (T 1e-4)", "umbrella, T 1e-2", "v3: PCA normal (LRF
 EDGE_GROUPS = {"distance": [0], "normal angles": [1, 2, 3], "bend": [4], "point shape": [5, 6, 7], "shape differences": [8, 9, 10]}
 
 
+def table_header(first_column: str, protocols: list[str]) -> list[str]:
+    """The two header lines of a markdown table with one column per protocol."""
+    return [f"| {first_column} | " + " | ".join(protocols) + " |", "| --- | " + " | ".join("---:" for _ in protocols) + " |"]
+
+
 def pair_measurements(pair) -> dict[str, np.ndarray]:
     """Per corresponding point: unsigned normal angles (deg), sign agreements, edge differences."""
     normalization = PairNormalization.fit(pair.source, pair.target)
@@ -118,8 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## Normal angle between the two views (degrees, sign ignored): median / mean / 90th percentile",
         "",
-        "| normal | " + " | ".join(protocols) + " |",
-        "| --- | " + " | ".join("---:" for _ in protocols) + " |",
+        *table_header("normal", protocols),
     ]
     for name in NORMALS:
         cells = [
@@ -130,8 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## Sign agreement between the two views (share of corresponding points)",
         "",
-        "| sign | " + " | ".join(protocols) + " |",
-        "| --- | " + " | ".join("---:" for _ in protocols) + " |",
+        *table_header("sign", protocols),
     ]
     for name in ("shipped LRF u", "shipped LRF w", NORMALS[0], NORMALS[2]):
         cells = [f"{100 * results[p][f'sign/{name}']['agreement']:.1f} %" for p in protocols]
@@ -146,8 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## v3 edge channels: mean |difference| of the per-point neighbour means (spread of the channel in brackets)",
         "",
-        "| channels | " + " | ".join(protocols) + " |",
-        "| --- | " + " | ".join("---:" for _ in protocols) + " |",
+        *table_header("channels", protocols),
     ]
     for group in EDGE_GROUPS:
         cells = [
