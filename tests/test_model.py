@@ -278,6 +278,40 @@ def test_v3_holds_no_tensor_of_n_by_n_by_d_elements():
     assert monitor.largest < count * count * config.descriptor_dim / 4, monitor.largest
 
 
+def test_v3_attention_fast_paths_equal_the_explicit_softmax_with_gradients():
+    """attend() pads narrow values for torch's fused kernel, and the cross layer runs it once per
+    direction; both must equal softmax(S) V written out, values and gradients."""
+    from training.invariant_model import BidirectionalCrossLayer, attend
+    from training.layers import split_heads
+
+    generator = torch.Generator().manual_seed(8)
+    query = torch.randn(2, 3, 40, 11, generator=generator, requires_grad=True)
+    key = torch.randn(2, 3, 50, 11, generator=generator, requires_grad=True)
+    value = torch.randn(2, 3, 50, 4, generator=generator, requires_grad=True)
+    fast = attend(query, key, value, heads=3)
+    explicit = torch.softmax(query @ key.transpose(2, 3), dim=3) @ value
+    assert fast.shape == explicit.shape == (2, 3, 40, 4)
+    torch.testing.assert_close(fast, explicit, rtol=1e-5, atol=1e-6)
+    weights = torch.randn(fast.shape, generator=generator)
+    fast_grads = torch.autograd.grad((fast * weights).sum(), (query, key, value))
+    explicit_grads = torch.autograd.grad((explicit * weights).sum(), (query, key, value))
+    for fast_grad, explicit_grad in zip(fast_grads, explicit_grads):
+        torch.testing.assert_close(fast_grad, explicit_grad, rtol=1e-4, atol=1e-5)
+
+    layer = BidirectionalCrossLayer(width=12, heads=3)
+    source = torch.randn(2, 40, 12, generator=generator)
+    target = torch.randn(2, 50, 12, generator=generator)
+    new_source, new_target = layer(source, target)
+    def split(x):
+        return split_heads(x, 3)
+
+    logits = split(layer.query_key(source)) @ split(layer.query_key(target)).transpose(2, 3) / 2.0
+    source_message = torch.softmax(logits, dim=3) @ split(layer.value(target))
+    target_message = torch.softmax(logits, dim=2).transpose(2, 3) @ split(layer.value(source))
+    torch.testing.assert_close(new_source, layer.update(source, source_message), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(new_target, layer.update(target, target_message), rtol=1e-5, atol=1e-5)
+
+
 def test_transformer_runs_on_2048_points():
     """2048 points per cloud, twice the working size (its speed: benchmarks/latency.py)."""
     generator = torch.Generator().manual_seed(6)

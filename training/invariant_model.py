@@ -116,6 +116,14 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
     if torch.onnx.is_in_onnx_export():
         fused = _ExportedAttention.apply(merge_heads(query), merge_heads(key), merge_heads(value), heads)
         return split_heads(fused, heads)
+    value_width, query_width = value.shape[-1], query.shape[-1]
+    if value_width < query_width:
+        # torch's fused (flash) kernels need one head width for q, k and v; without it SDPA falls
+        # back to the math path, which holds the (B, H, N, M) probabilities for backward. Zero
+        # columns of v change nothing but cost far less: one training step on the CPU went from
+        # ~0.7 s to ~0.4 s per attention pass (8 x 768 points, 4 heads of 50 / 24 channels).
+        value = F.pad(value, (0, query_width - value_width))
+        return F.scaled_dot_product_attention(query, key, value, scale=1.0)[..., :value_width]
     return F.scaled_dot_product_attention(query, key, value, scale=1.0)
 
 
@@ -227,15 +235,11 @@ class BidirectionalCrossLayer(nn.Module):
         target_qk = split_heads(self.query_key(target), heads)
         source_value = split_heads(self.value(source), heads)
         target_value = split_heads(self.value(target), heads)
-        if torch.onnx.is_in_onnx_export():
-            # The fused kernel, once per direction: twice the Q K^T work, but no (B, H, N, M)
-            # tensor outlives its kernel (the export parity check holds it to the path below).
-            source_message = attend(source_qk * scale, target_qk, target_value, heads)
-            target_message = attend(target_qk * scale, source_qk, source_value, heads)
-        else:
-            logits = (source_qk * scale) @ target_qk.transpose(2, 3)  # (B, H, N, M), shared
-            source_message = torch.softmax(logits, dim=3) @ target_value
-            target_message = torch.softmax(logits.transpose(2, 3), dim=3) @ source_value
+        # The fused kernel once per direction (softmax_cols(S)^T is the row softmax of S^T): twice
+        # the Q K^T work of one shared S, but no (B, H, N, M) tensor outlives its kernel, which
+        # made it 2.4x faster than the shared-S form in training on the CPU (forward + backward).
+        source_message = attend(source_qk * scale, target_qk, target_value, heads)
+        target_message = attend(target_qk * scale, source_qk, source_value, heads)
         return self.update(source, source_message), self.update(target, target_message)
 
 
