@@ -7,11 +7,13 @@ ModelNet40 train subset, seed 0), and optionally from the Bunny scan pairs that
 
 Two steps, both resumable:
 
-    python benchmarks/calibrate_success.py collect [--count 120] [--threads 1]
+    python benchmarks/calibrate_success.py collect [--count 120] [--threads 1] [--model-dir DIR --cache DIR]
         runs the network once per pair and caches the matches (runs/success_calibration/)
-    python benchmarks/calibrate_success.py fit
+    python benchmarks/calibrate_success.py fit [--cache DIR --report STEM] [--manifest MODEL_DIR]
         computes the verification features of every candidate pose, fits the logistic model
-        and the threshold, writes benchmarks/results/success_calibration.{md,json}
+        and the threshold, writes benchmarks/results/success_calibration.{md,json}; with
+        --manifest, also writes the calibration into that model's manifest ("runtime" ->
+        "verification"), where the runtime reads it (a calibration belongs to one model)
 
 Pair groups (all "partial" protocol: noise sigma 0.01, independent crops, both clouds turned
 by one random rotation so that no canonical pose helps):
@@ -97,15 +99,15 @@ def bunny_pairs():
                relative_pose(source, target))
 
 
-def collect(groups: list[str], count: int, threads: int) -> None:
-    registrar = Registrar(threads=threads)
+def collect(groups: list[str], count: int, threads: int, model_dir: Path | None = None, cache: Path = CACHE) -> None:
+    registrar = Registrar(model_dir, threads=threads)
     for group in groups:
-        (CACHE / group).mkdir(parents=True, exist_ok=True)
+        (cache / group).mkdir(parents=True, exist_ok=True)
         pairs = bunny_pairs() if group == "bunny_unbenchmarked" else synthetic_pairs(group, count)
         started = time.perf_counter()
         done = 0
         for name, source, target, truth in pairs:
-            path = CACHE / f"{name}.npz"
+            path = cache / f"{name}.npz"
             if path.exists():
                 continue
             matched = registrar.match(source, target)
@@ -136,13 +138,19 @@ def main(argv: list[str] | None = None) -> int:
     collecting.add_argument("--groups", nargs="+", choices=GROUPS, default=list(GROUPS))
     collecting.add_argument("--count", type=int, default=120, help="pairs per synthetic group")
     collecting.add_argument("--threads", type=int, default=1)
+    collecting.add_argument("--model-dir", type=Path, default=None, help="exported model (default: the bundled one)")
     fitting = commands.add_parser("fit", help="features, logistic fit, threshold; writes the report")
     fitting.add_argument("--groups", nargs="+", choices=(*GROUPS, INIT_GROUP), default=[*GROUPS, INIT_GROUP])
+    fitting.add_argument("--report", type=Path, default=REPORT, help="report path without suffix")
+    fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
+                         help="write the calibration into this model's manifest.json (the model collected with)")
+    for command in (collecting, fitting):
+        command.add_argument("--cache", type=Path, default=CACHE, help="the matches' cache (one per model)")
     args = parser.parse_args(argv)
     if args.command == "collect":
-        collect(args.groups, args.count, args.threads)
+        collect(args.groups, args.count, args.threads, args.model_dir, args.cache)
     else:
-        fit(args.groups)
+        fit(args.groups, args.cache, args.report, args.manifest)
     return 0
 
 
@@ -303,21 +311,21 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def fit(groups: list[str]) -> None:
+def fit(groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None) -> None:
     import dataclasses
 
     from logdesc_rt.config import VerificationConfig
     from logdesc_rt.verification import logistic_confidence
 
     base = VerificationConfig()
-    features_cache = CACHE / "hypotheses.json"
+    features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
     if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
         cached = {"config": {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")},
                   "rows": {}}
     started = time.perf_counter()
     for group in groups:
-        folder = CACHE / ("bunny_unbenchmarked" if group == INIT_GROUP else group)
+        folder = cache / ("bunny_unbenchmarked" if group == INIT_GROUP else group)
         for path in sorted(folder.glob("*.npz")):
             key = f"{group}/{path.stem}"
             if key not in cached["rows"]:
@@ -373,12 +381,29 @@ def fit(groups: list[str]) -> None:
         "target_precision": TARGET_PRECISION,
         "flag_on_calibration_pairs": summary,
     }
-    REPORT.with_suffix(".json").write_text(json.dumps(payload, indent=1))
-    REPORT.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
+    report.with_suffix(".json").write_text(json.dumps(payload, indent=1))
+    report.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
+    if manifest_dir is not None:
+        write_calibration(manifest_dir, fitted)
     print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": threshold}, indent=1))
     for mode in ("refined", "unrefined"):
         for group, quality in summary[mode].items():
             print(f"{mode:10s} {group:22s} " + " ".join(f"{k} {v:.3g}" for k, v in quality.items()))
+
+
+def write_calibration(model_dir: Path, fitted) -> None:
+    """Store the fitted weights, bias and threshold as the model's verification defaults."""
+    path = Path(model_dir) / "manifest.json"
+    manifest = json.loads(path.read_text())
+    runtime = manifest.setdefault("runtime", {})
+    runtime["verification"] = {
+        **runtime.get("verification", {}),
+        "weights": list(fitted.weights),
+        "bias": fitted.bias,
+        "success_threshold": fitted.success_threshold,
+    }
+    path.write_text(json.dumps(manifest, indent=2) + "\n")
+    print(f"calibration written to {path}")
 
 
 if __name__ == "__main__":

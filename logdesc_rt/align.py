@@ -185,7 +185,7 @@ def align(
     *,
     names: Sequence[str] | None = None,
     config: AlignConfig = AlignConfig(),
-    runtime_config: RuntimeConfig | None = None,
+    runtime_config: RuntimeConfig | dict | None = None,
     backend: str = "local",
     workers: int | None = None,
     threads_per_worker: int | None = None,
@@ -201,7 +201,8 @@ def align(
             unit for all.
         names: one name per scan for the result (default: the paths, or ``scan_000`` ...).
         config: candidate pairs, verification, robust loss and pruning (:class:`AlignConfig`).
-        runtime_config: the registration pipeline's configuration (None: defaults).
+        runtime_config: the registration pipeline's configuration (None: the model's
+            defaults; a dict: a partial one over them; see ``Registrar``).
         backend, workers, threads_per_worker, address, progress, model_dir: the pairwise
             stage's, as in :func:`~logdesc_rt.batch.register_many`.
         pairs_output: optional JSON-lines file for the pairwise records (then resumable).

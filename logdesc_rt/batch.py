@@ -64,14 +64,15 @@ class WorkerSpec:
     Attributes:
         threads: onnxruntime intra-op threads of this worker (>= 1).
         model_dir: the exported model's folder; None = the bundled model.
-        config: the runtime configuration (None = defaults).
+        config: the runtime configuration: None = the model's defaults, a dict = a partial
+            one over them, or a RuntimeConfig (see :class:`~logdesc_rt.registration.Registrar`).
         register_options: keyword arguments of :meth:`Registrar.register` (estimator, refine,
             max_correspondence_distance, seed); only those the caller set.
     """
 
     threads: int
     model_dir: str | None = None
-    config: RuntimeConfig | None = None
+    config: RuntimeConfig | dict | None = None
     register_options: dict[str, Any] = field(default_factory=dict)
 
     def registrar(self):
@@ -186,7 +187,7 @@ def register_many(
     on_record: Callable[[dict], None] | None = None,
     threads_per_worker: int | None = None,
     model_dir: str | os.PathLike | None = None,
-    config: RuntimeConfig | None = None,
+    config: RuntimeConfig | dict | None = None,
     estimator: str | None = None,
     refine: str | None = _FROM_CONFIG,
     max_correspondence_distance: float | None = None,

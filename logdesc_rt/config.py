@@ -200,8 +200,10 @@ class VerificationConfig(_DictMixin):
     refine_candidates: int = 5
     icp_iterations: int = 20
     same_pose_deg: float = 4.0
-    # Fitted by benchmarks/calibrate_success.py on validation pairs (bundled model
-    # small-h100-v2); benchmarks/results/success_calibration.{md,json} say on what and how well.
+    # A calibration belongs to a model: the one in effect is the model manifest's
+    # ("runtime" -> "verification"). These defaults serve a model without one; they are the
+    # fit of benchmarks/calibrate_success.py for small-h100-v2 on validation pairs
+    # (benchmarks/results/success_calibration.{md,json} say on what and how well).
     weights: tuple[float, ...] = (0.9126, 2.9269, -10.1488, 1.2178, 1.6810, 1.0706, 3.4001, 0.6722, -3.5153, -1.7593)
     bias: float = -2.2202
     success_threshold: float = 0.3960
@@ -424,13 +426,19 @@ _RUNTIME_SECTIONS = {
 }
 
 
+# Sections a trained model supplies when a RuntimeConfig leaves them None.
+_MODEL_SECTIONS = ("matching", "verification")
+
+
 @dataclass(frozen=True)
 class RuntimeConfig:
     """Every runtime stage's parameters in one place: what ``Registrar`` does with a pair.
 
     The geometry and normalisation are fixed by the trained model (its manifest) and are not
-    here. Printed by ``logdesc-rt register --json`` under "config"; read from JSON by
-    ``--config FILE`` (a partial dict: missing keys keep their defaults).
+    here. A model's manifest stores its runtime defaults ("runtime": a partial dict of this
+    class, e.g. the success-flag calibration fitted for that model); ``Registrar.config`` is
+    them, resolved. Printed by ``logdesc-rt register --json`` under "config"; ``--config FILE``
+    and ``Registrar(config={...})`` take a partial dict applied over the model's defaults.
 
     Attributes:
         subsampling: working size and method (:class:`SubsamplingConfig`).
@@ -438,7 +446,8 @@ class RuntimeConfig:
         estimator: "auto" (every candidate estimator, verified; the best kept, default),
             or one of "fsr", "svd", "ransac" (that estimator's pose, still verified).
         fsr, ransac: the two robust estimators (network units; also the "auto" candidates).
-        verification: hypotheses, scoring and the calibrated success flag.
+        verification: hypotheses, scoring and the success flag; None uses the model's own
+            (its calibration).
         refinement: ICP and the correspondence distance for fitness / inlier RMSE.
     """
 
@@ -447,7 +456,7 @@ class RuntimeConfig:
     estimator: str = "auto"
     fsr: FsrConfig = FsrConfig()
     ransac: RansacConfig = RansacConfig()
-    verification: VerificationConfig = VerificationConfig()
+    verification: VerificationConfig | None = None
     refinement: RefinementConfig = RefinementConfig()
 
     def __post_init__(self) -> None:
@@ -455,11 +464,11 @@ class RuntimeConfig:
             raise ValueError(f"RuntimeConfig.estimator must be one of {POSE_ESTIMATORS}, got {self.estimator!r}")
         for name, kind in _RUNTIME_SECTIONS.items():
             value = getattr(self, name)
-            if not (isinstance(value, kind) or (name == "matching" and value is None)):
+            if not (isinstance(value, kind) or (name in _MODEL_SECTIONS and value is None)):
                 raise TypeError(f"RuntimeConfig.{name} must be a {kind.__name__}, got {type(value).__name__}")
 
     def to_dict(self) -> dict[str, Any]:
-        """Nested JSON-friendly dict (``matching`` None when the model's is used)."""
+        """Nested JSON-friendly dict (``matching`` / ``verification`` None: the model's)."""
         values: dict[str, Any] = {"estimator": self.estimator}
         for name in _RUNTIME_SECTIONS:
             section = getattr(self, name)
@@ -488,8 +497,8 @@ class RuntimeConfig:
                 continue
             given = values[name]
             if given is None:
-                if name != "matching":
-                    raise ValueError(f"RuntimeConfig.{name}: null is allowed only for matching")
+                if name not in _MODEL_SECTIONS:
+                    raise ValueError(f"RuntimeConfig.{name}: null is allowed only for {' and '.join(_MODEL_SECTIONS)}")
                 changes[name] = None
                 continue
             if not isinstance(given, dict):
@@ -500,7 +509,14 @@ class RuntimeConfig:
         return dataclasses.replace(base, **changes)
 
     def with_seed(self, seed: int) -> "RuntimeConfig":
-        """The same config with every random choice (FSR, RANSAC, verification) seeded by ``seed``."""
+        """The same config with every random choice (FSR, RANSAC, verification) seeded by ``seed``.
+
+        Raises:
+            ValueError: ``verification`` is None (the model's): resolve it first
+                (``Registrar.call_config`` does).
+        """
+        if self.verification is None:
+            raise ValueError("RuntimeConfig.with_seed: verification is None (the model's); resolve it first")
         return dataclasses.replace(
             self,
             fsr=dataclasses.replace(self.fsr, seed=seed),

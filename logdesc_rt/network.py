@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import GeometryConfig, MatchingConfig, NormalizationConfig
+from .config import GeometryConfig, MatchingConfig, NormalizationConfig, RuntimeConfig
 from .errors import ModelFileError
 
 MANIFEST_NAME = "manifest.json"
@@ -64,6 +64,9 @@ class ModelManifest:
         checksums: file name -> SHA-256 hex digest.
         model_config: the training model config (informative at run time).
         provenance: data, steps, wall time, hardware, commit, validation metrics.
+        runtime: the model's runtime defaults, a partial :class:`~logdesc_rt.config.RuntimeConfig`
+            dict (e.g. "verification": the success flag calibrated for this model);
+            ``Registrar`` starts from it.
     """
 
     geometry: GeometryConfig
@@ -75,6 +78,7 @@ class ModelManifest:
     checksums: dict[str, str]
     model_config: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    runtime: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -88,6 +92,7 @@ class ModelManifest:
             "checksums": self.checksums,
             "model_config": self.model_config,
             "provenance": self.provenance,
+            "runtime": self.runtime,
         }
 
     @classmethod
@@ -104,7 +109,16 @@ class ModelManifest:
             checksums=dict(values["checksums"]),
             model_config=dict(values.get("model_config", {})),
             provenance=dict(values.get("provenance", {})),
+            runtime=dict(values.get("runtime", {})),
         )
+
+    def __post_init__(self) -> None:
+        self.runtime_config()  # a bad "runtime" section fails when the model is read
+
+    def runtime_config(self) -> RuntimeConfig:
+        """The model's runtime defaults: ``runtime`` over the code's defaults (not yet
+        resolved: ``Registrar`` fills in the working size and the model's matching)."""
+        return RuntimeConfig.from_dict(self.runtime)
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

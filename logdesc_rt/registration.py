@@ -43,6 +43,7 @@ from .config import (
     RefinementConfig,
     RuntimeConfig,
     SubsamplingConfig,
+    VerificationConfig,
 )
 from .pose import evaluate_registration
 from .pose.evaluation import check_rigid_transformation
@@ -198,32 +199,37 @@ class PairMatches:
     """One pair taken through the learned pipeline up to the matches (:meth:`Registrar.match`).
 
     Attributes:
-        source_points, target_points: (N, 3) / (M, 3) float64 clouds as given (user frame).
-        source_index, target_index: (Ns,) / (Mt,) int64, the points the network saw (all of
-            them unless subsampled to the working size).
-        normalization: maps the working subsets to network units and poses back.
-        source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
+        prepared: the pair before the networks (clouds, working subsets, normalisation,
+            geometry); its fields are also readable here (``source_points``, ``source_index``,
+            ``normalization``, ``source_network`` and their target twins).
+        config: the runtime configuration it was matched with (resolved); :meth:`pose` and
+            :meth:`candidates` use it by default.
         source_descriptors, target_descriptors: (Ns, d) / (Mt, d) float32 learned descriptors
             (before the matcher's transformer), unit norm.
         scores: (Ns, Mt) float32 matching scores <f_i, h_j> / sqrt(d) from the matcher network
             (Sinkhorn with the model's dustbin turns them into the matches).
         matches: mutual matches; indices into the working subsets.
-        timings: stage name -> seconds: load, subsample, geometry, descriptors (descriptor
-            network, both clouds), matcher (transformer + scores), matching (Sinkhorn + mutual).
+        timings: stage name -> seconds: the preparation's (load, subsample, geometry), then
+            descriptors (descriptor network, both clouds), matcher (transformer + scores),
+            matching (Sinkhorn + mutual).
     """
 
-    source_points: np.ndarray
-    target_points: np.ndarray
-    source_index: np.ndarray
-    target_index: np.ndarray
-    normalization: PairNormalization
-    source_network: np.ndarray
-    target_network: np.ndarray
+    prepared: PreparedPair
+    config: RuntimeConfig
     source_descriptors: np.ndarray
     target_descriptors: np.ndarray
     scores: np.ndarray
     matches: Matches
     timings: dict[str, float] = field(default_factory=dict)
+
+    # The prepared pair's fields, read through (one copy of each array).
+    source_points = property(lambda self: self.prepared.source_points)
+    target_points = property(lambda self: self.prepared.target_points)
+    source_index = property(lambda self: self.prepared.source_index)
+    target_index = property(lambda self: self.prepared.target_index)
+    normalization = property(lambda self: self.prepared.normalization)
+    source_network = property(lambda self: self.prepared.source_network)
+    target_network = property(lambda self: self.prepared.target_network)
 
     @property
     def correspondences(self) -> np.ndarray:
@@ -247,7 +253,7 @@ class PairMatches:
             estimator: "fsr", "svd" (confidence-weighted, every match), "ransac" or "top_k"
                 (see :mod:`logdesc_rt.verification`). "auto" needs :meth:`Registrar.register`.
             seed: seeds FSR / RANSAC sampling; None: the config's seeds (0 by default).
-            config: FSR / RANSAC / top-k parameters; None: the defaults.
+            config: FSR / RANSAC / top-k parameters; None: the one it was matched with.
 
         Raises:
             RegistrationError: fewer than 3 mutual matches.
@@ -257,7 +263,7 @@ class PairMatches:
                 f"estimator {estimator!r}: expected one of {CANDIDATE_ESTIMATORS} (\"auto\" verifies "
                 "every candidate: use Registrar.register)"
             )
-        config = _seeded(RuntimeConfig() if config is None else config, seed)
+        config = _seeded(self.config if config is None else config, seed)
         self._require_matches()
         network_pose = estimate_pose(
             estimator,
@@ -276,7 +282,7 @@ class PairMatches:
         Raises:
             RegistrationError: fewer than 3 mutual matches.
         """
-        config = RuntimeConfig() if config is None else config
+        config = self.config if config is None else config
         self._require_matches()
         poses = candidate_poses(
             self.source_network[self.matches.source_index],
@@ -307,11 +313,15 @@ class Registrar:
             config's (default: the cloud size used in training, from the model manifest).
         subsampling: "fps" (farthest-point) or "voxel" (grid sized to keep roughly
             ``max_points``, then farthest-point to the exact count); None = the config's ("fps").
-        config: every runtime stage's parameters (:class:`~logdesc_rt.config.RuntimeConfig`);
-            None = the defaults. ``max_points`` and ``subsampling`` override its subsampling.
+        config: every runtime stage's parameters. None: the model's defaults (its manifest's
+            "runtime", e.g. its success-flag calibration); a dict: a partial
+            :class:`~logdesc_rt.config.RuntimeConfig` dict over the model's defaults; a
+            ``RuntimeConfig``: taken as it is, its None sections (matching, verification)
+            the model's. ``max_points`` and ``subsampling`` override its subsampling.
 
     Attributes:
-        config: the configuration in use, defaults resolved (working size, the model's matching).
+        config: the configuration in use, resolved (working size, the model's matching and
+            verification filled in).
     """
 
     def __init__(
@@ -320,11 +330,12 @@ class Registrar:
         threads: int | None = None,
         max_points: int | None = None,
         subsampling: str | None = None,
-        config: RuntimeConfig | None = None,
+        config: RuntimeConfig | dict | None = None,
     ):
-        config = RuntimeConfig() if config is None else config
-        if not isinstance(config, RuntimeConfig):
-            raise TypeError(f"config: expected a RuntimeConfig, got {type(config).__name__}")
+        self.network = OnnxNetwork(model_dir, threads=threads)
+        self.manifest = self.network.manifest
+        self.config = self._resolved(self.manifest.runtime_config())  # the model's defaults first
+        config = self._given_config(config)
         if max_points is not None or subsampling is not None:
             config = dataclasses.replace(
                 config,
@@ -333,8 +344,6 @@ class Registrar:
                     method=config.subsampling.method if subsampling is None else subsampling,
                 ),
             )
-        self.network = OnnxNetwork(model_dir, threads=threads)
-        self.manifest = self.network.manifest
         self.config = self._resolved(config)
         self.max_points = self.config.subsampling.max_points
         self.subsampling = self.config.subsampling.method
@@ -371,8 +380,9 @@ class Registrar:
                 and seed, same output. Default: the config's (0).
             init: optional (4, 4) initial guess, source -> target (user frame). It joins the
                 candidates and is verified like them; with "auto" it is kept if it scores best.
-            config: this call's :class:`~logdesc_rt.config.RuntimeConfig` (default: the
-                Registrar's); the keyword arguments above override it.
+            config: this call's configuration (default: the Registrar's), as the
+                Registrar's ``config`` argument takes it (a dict applies over the Registrar's);
+                the keyword arguments above override it.
             progress: optional callable, called with a short message as each stage starts
                 (the command line prints them on stderr).
 
@@ -483,7 +493,7 @@ class Registrar:
 
     def call_config(
         self,
-        config: RuntimeConfig | None = None,
+        config: RuntimeConfig | dict | None = None,
         *,
         estimator: str | None = None,
         refine=_UNSET,
@@ -491,14 +501,12 @@ class Registrar:
         seed: int | None = None,
     ) -> RuntimeConfig:
         """The configuration one :meth:`register` call runs with: ``config`` (default: the
-        Registrar's) with the keyword overrides applied and defaults resolved.
+        Registrar's; a dict applies over it) with the keyword overrides applied, resolved.
 
         Raises:
             ValueError: an invalid override (unknown estimator or refinement, distance <= 0).
         """
-        config = self.config if config is None else config
-        if not isinstance(config, RuntimeConfig):
-            raise TypeError(f"config: expected a RuntimeConfig, got {type(config).__name__}")
+        config = self._resolved(self._given_config(config))
         if estimator is not None:
             if estimator not in POSE_ESTIMATORS:
                 raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
@@ -513,8 +521,7 @@ class Registrar:
             if not 0.0 < distance < float("inf"):
                 raise ValueError(f"max_correspondence_distance: {distance} must be > 0")
             refinement = dataclasses.replace(refinement, max_correspondence_distance=distance)
-        config = dataclasses.replace(config, refinement=refinement)
-        return self._resolved(_seeded(config, seed))
+        return _seeded(dataclasses.replace(config, refinement=refinement), seed)
 
     def match(self, source, target) -> PairMatches:
         """The learned pipeline up to the matches: what :meth:`register` builds its pose from.
@@ -550,13 +557,8 @@ class Registrar:
                 self.config.matching.match_threshold,
             )
         return PairMatches(
-            source_points=prepared.source_points,
-            target_points=prepared.target_points,
-            source_index=prepared.source_index,
-            target_index=prepared.target_index,
-            normalization=prepared.normalization,
-            source_network=network_source,
-            target_network=network_target,
+            prepared=prepared,
+            config=self.config,
             source_descriptors=source_descriptors,
             target_descriptors=target_descriptors,
             scores=scores,
@@ -618,8 +620,20 @@ class Registrar:
 
     # -- helpers ----------------------------------------------------------------------------
 
+    def _given_config(self, config: RuntimeConfig | dict | None) -> RuntimeConfig:
+        """A user's ``config`` argument as a RuntimeConfig: None is this Registrar's, a dict
+        applies over it, a RuntimeConfig is taken as it is."""
+        if config is None:
+            return self.config
+        if isinstance(config, dict):
+            return RuntimeConfig.from_dict(config, base=self.config)
+        if not isinstance(config, RuntimeConfig):
+            raise TypeError(f"config: expected a RuntimeConfig or a dict, got {type(config).__name__}")
+        return config
+
     def _resolved(self, config: RuntimeConfig) -> RuntimeConfig:
-        """``config`` with the model's defaults filled in (working size, matching), checked."""
+        """``config`` with the model's values filled in (working size, matching,
+        verification), checked."""
         max_points = config.subsampling.max_points or self.manifest.points_per_cloud
         min_points = self.manifest.geometry.min_points
         if max_points < min_points:
@@ -628,7 +642,13 @@ class Registrar:
             config,
             subsampling=dataclasses.replace(config.subsampling, max_points=int(max_points)),
             matching=self.manifest.matching if config.matching is None else config.matching,
+            verification=self._model_verification() if config.verification is None else config.verification,
         )
+
+    def _model_verification(self) -> VerificationConfig:
+        """The model's verification (its calibration), from its manifest's runtime defaults."""
+        verification = self.manifest.runtime_config().verification
+        return VerificationConfig() if verification is None else verification
 
     def _with_config(self, config: RuntimeConfig) -> "Registrar":
         """This Registrar, or a shallow copy sharing its network when ``config`` changes the

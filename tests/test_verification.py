@@ -135,8 +135,64 @@ def test_runtime_config_round_trips_and_merges_partial_dicts():
         RuntimeConfig.from_dict({"icp": {}})
     with pytest.raises(ValueError, match="estimator"):
         RuntimeConfig(estimator="magic")
-    seeded = config.with_seed(7)
+    with pytest.raises(ValueError, match="resolve"):  # verification None: the model's, unknown here
+        config.with_seed(7)
+    seeded = dataclasses.replace(config, verification=VerificationConfig()).with_seed(7)
     assert seeded.fsr.seed == seeded.ransac.seed == seeded.verification.seed == 7
+
+
+def _model_copy(tmp_path, runtime: dict):
+    """The bundled model's files in ``tmp_path`` with ``runtime`` as its manifest's defaults."""
+    import shutil
+
+    from logdesc_rt.network import bundled_model_dir
+
+    folder = tmp_path / "model"
+    shutil.copytree(bundled_model_dir(), folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest["runtime"] = runtime
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+def test_the_models_runtime_defaults_come_from_its_manifest(tmp_path, demo_pair):
+    """A model's manifest carries its runtime defaults (its success-flag calibration among
+    them); a dict overrides them key by key, a RuntimeConfig keeps the model's verification."""
+    model = _model_copy(tmp_path, {"verification": {"success_threshold": 0.999999}, "fsr": {"iterations": 7}})
+    registrar = Registrar(model)
+    assert registrar.config.verification.success_threshold == 0.999999
+    assert registrar.config.fsr.iterations == 7
+    result = registrar.register(demo_pair.source, demo_pair.target)
+    assert result.config.verification.success_threshold == 0.999999
+    assert result.confidence < 0.999999 and not result.success  # the manifest's threshold decided
+
+    partial = Registrar(model, config={"fsr": {"iterations": 9}})
+    assert partial.config.fsr.iterations == 9
+    assert partial.config.verification.success_threshold == 0.999999  # kept from the manifest
+    whole = Registrar(model, config=RuntimeConfig())
+    assert whole.config.fsr.iterations == FsrConfig().iterations  # taken as given
+    assert whole.config.verification.success_threshold == 0.999999  # None: the model's
+    assert registrar.call_config({"estimator": "svd"}).verification.success_threshold == 0.999999
+
+    bundled = Registrar()
+    assert bundled.config.verification == RuntimeConfig.from_dict(bundled.manifest.runtime).verification
+
+
+def test_a_bad_runtime_section_in_a_manifest_fails_when_the_model_is_read(tmp_path):
+    from logdesc_rt.errors import ModelFileError
+
+    with pytest.raises(ModelFileError, match="unknown keys"):
+        Registrar(_model_copy(tmp_path, {"verification": {"threshold": 0.5}}))
+
+
+def test_pair_matches_reads_the_prepared_pair_without_copies(registrar, demo_pair):
+    pair = registrar.match(demo_pair.source, demo_pair.target)
+    fields = {field.name for field in dataclasses.fields(pair)}
+    assert not fields & {"source_points", "source_index", "source_network", "normalization"}
+    assert pair.source_points is pair.prepared.source_points
+    assert pair.target_network is pair.prepared.target_network
+    assert pair.config == registrar.config
+    np.testing.assert_array_equal(pair.pose("svd"), pair.pose("svd", config=registrar.config))
 
 
 def test_registrar_and_call_configs_are_used_and_reported(demo_pair):

@@ -147,20 +147,24 @@ def _read_init(path: Path) -> np.ndarray:
     return check_rigid_transformation(matrix, name=f"--init {path}")
 
 
-def _runtime_config(args):
-    """The RuntimeConfig from --config FILE (partial JSON) with the flags applied over it."""
+def _runtime_config(args) -> dict:
+    """--config FILE's partial RuntimeConfig dict ({} without it), checked before any work;
+    the Registrar applies it over the model's defaults (its manifest's "runtime")."""
     from ..config import RuntimeConfig
 
-    config = RuntimeConfig()
-    if getattr(args, "config", None) is not None:
-        try:
-            values = json.loads(Path(args.config).read_text())
-        except OSError as error:
-            raise ValueError(f"--config {args.config}: cannot read ({error.strerror or error})") from error
-        except json.JSONDecodeError as error:
-            raise ValueError(f"--config {args.config}: not JSON ({error})") from error
-        config = RuntimeConfig.from_dict(values)
-    return config
+    if getattr(args, "config", None) is None:
+        return {}
+    try:
+        values = json.loads(Path(args.config).read_text())
+    except OSError as error:
+        raise ValueError(f"--config {args.config}: cannot read ({error.strerror or error})") from error
+    except json.JSONDecodeError as error:
+        raise ValueError(f"--config {args.config}: not JSON ({error})") from error
+    try:
+        RuntimeConfig.from_dict(values)  # unknown keys and bad values fail here, before loading
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"--config {args.config}: {error}") from error
+    return values
 
 
 def _registrar(args, config=None):
@@ -407,9 +411,7 @@ def _command_register_many(args) -> int:
     subsampling = {"max_points": args.max_points, "method": args.subsampling}
     subsampling = {key: value for key, value in subsampling.items() if value is not None}
     if subsampling:
-        import dataclasses
-
-        config = dataclasses.replace(config, subsampling=dataclasses.replace(config.subsampling, **subsampling))
+        config = {**config, "subsampling": {**config.get("subsampling", {}), **subsampling}}
 
     # 2. The work: records stream to --out as pairs finish.
     bar = not args.quiet and sys.stderr.isatty()
