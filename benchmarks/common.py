@@ -149,6 +149,9 @@ def pair_record(pair: BenchmarkPair, method: str, result) -> dict:
         "seconds": float(result.seconds),
         "failed": bool(result.failed),
     }
+    if getattr(result, "flagged_success", None) is not None:
+        record["flagged_success"] = bool(result.flagged_success)
+        record["confidence"] = float(result.confidence)
     if result.pred_match is not None and pair.gt_match is not None:
         metrics = matching_metrics(result.pred_match, pair.gt_match)
         record.update({name: (None if math.isnan(value) else value) for name, value in metrics.items()})
@@ -248,7 +251,8 @@ def summarize(records: list[dict]) -> dict[str, float]:
     error), l_r_median, l_t, success (share of pairs with rotation error < 5 deg and
     translation error < 5 % of the object's radius), failed (pairs without a pose),
     precision / accuracy / recall (mean over pairs, NaN where the method has no matches),
-    seconds_median, pairs.
+    flag_precision / flag_recall (the runtime's success flag: right among the flagged, flagged
+    among the right; NaN for methods without a flag), seconds_median, pairs.
     """
     predicted = np.array([r["T_pred"] for r in records])
     truth = np.array([r["T_gt"] for r in records])
@@ -261,6 +265,15 @@ def summarize(records: list[dict]) -> dict[str, float]:
     for name in ("precision", "accuracy", "recall"):
         values = np.array([r.get(name) for r in records if r.get(name) is not None], dtype=np.float64)
         metrics[name] = float(values.mean()) if len(values) else float("nan")
+    flagged = [r for r in records if r.get("flagged_success") is not None]
+    metrics["flag_precision"], metrics["flag_recall"] = float("nan"), float("nan")
+    if flagged:
+        claimed = np.array([r["flagged_success"] for r in flagged])
+        right = np.array([is_success(r) for r in flagged])
+        if claimed.any():
+            metrics["flag_precision"] = float(right[claimed].mean())
+        if right.any():
+            metrics["flag_recall"] = float(claimed[right].mean())
     metrics["seconds_median"] = float(np.median([r["seconds"] for r in records]))
     metrics["pairs"] = len(records)
     return metrics
@@ -277,11 +290,13 @@ COLUMNS = [
     ("P %", "precision", "{:.1f}"),
     ("A %", "accuracy", "{:.1f}"),
     ("R %", "recall", "{:.1f}"),
+    ("flag P %", "flag_precision", "{:.1f}"),
+    ("flag R %", "flag_recall", "{:.1f}"),
     ("ms / pair", "seconds_median", "{:.0f}"),
     ("failed", "failed", "{:d}"),
     ("pairs", "pairs", "{:d}"),
 ]
-PERCENT = {"success", "precision", "accuracy", "recall"}
+PERCENT = {"success", "precision", "accuracy", "recall", "flag_precision", "flag_recall"}
 
 
 def markdown_table(rows: dict[str, dict], label: str = "method") -> str:

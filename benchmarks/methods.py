@@ -7,6 +7,10 @@ pose estimators on logdesc-rt's matches see the same matches:
 - ``logdesc_fsr``, ``logdesc_svd``, ``logdesc_ransac``: the shipped pipeline
   (:meth:`logdesc_rt.Registrar.match`), then FSR (the default), confidence-weighted SVD or our
   RANSAC on its mutual matches;
+- ``logdesc_auto``, ``logdesc_auto_icp``: what ``register()`` returns by default, from the
+  same matches (:meth:`logdesc_rt.Registrar.register_matches`): every candidate pose
+  verified on the full clouds, the best kept, and the success flag; without and with
+  point-to-plane ICP. Their records carry the flag (``flagged_success``, ``confidence``);
 - ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
   MVP-RG table does;
@@ -52,13 +56,14 @@ from logdesc_rt.registration import DEFAULT_DISTANCE_FRACTION
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
+VERIFIED_METHODS = {"logdesc_auto": None, "logdesc_auto_icp": "point_to_plane"}  # method -> refine
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
 ICP_METHODS = ("icp_point_to_plane",)
 # Refined method -> the coarse method whose pose ICP starts from.
 REFINED_FROM = {"logdesc_fsr_icp": "logdesc_fsr", "fpfh_fgr_icp": "fpfh_fgr"}
 REFINED_METHODS = tuple(REFINED_FROM)
-ALL_METHODS = LOGDESC_METHODS + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
+ALL_METHODS = LOGDESC_METHODS + tuple(VERIFIED_METHODS) + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
 OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp",)
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
@@ -121,12 +126,16 @@ class MethodResult:
         pred_match: (N,) int64 predicted target index per source point (-1 unmatched), for
             methods whose matches are meaningful (logdesc's Sinkhorn matches, mutual
             nearest neighbours in descriptor space); None otherwise.
+        flagged_success, confidence: the runtime's success flag and confidence (the
+            verified methods); None for the others.
     """
 
     transformation: np.ndarray
     seconds: float
     failed: bool = False
     pred_match: np.ndarray | None = None
+    flagged_success: bool | None = None
+    confidence: float | None = None
 
 
 def failed_result(seconds: float) -> MethodResult:
@@ -313,6 +322,9 @@ class MethodRunner:
                 results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
         if "logdesc_fsr_icp" in self.methods:
             results["logdesc_fsr_icp"] = self._refined(source, target, results["logdesc_fsr"], pair.normalization.scale)
+        for name, refine in VERIFIED_METHODS.items():
+            if name in self.methods:
+                results[name] = self._verified(pair, refine, seed, match_seconds, pred_match)
         if any(m in self.methods for m in DESCRIPTOR_METHODS):
             describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
             results.update(
@@ -328,6 +340,16 @@ class MethodRunner:
                 )
             )
         return results
+
+    def _verified(self, pair, refine, seed, match_seconds, pred_match) -> MethodResult:
+        """register()'s default pipeline from the matches: verified candidates, the flag."""
+        start = time.perf_counter()
+        try:
+            result = self.registrar.register_matches(pair, refine=refine, seed=seed)
+        except (RegistrationError, InvalidPointCloudError):
+            return MethodResult(np.eye(4), match_seconds, True, pred_match, flagged_success=False, confidence=0.0)
+        seconds = match_seconds + time.perf_counter() - start
+        return MethodResult(result.transformation, seconds, False, pred_match, result.success, result.confidence)
 
     def _fpfh(self, source, target, normalization: PairNormalization, seed) -> dict[str, MethodResult]:
         start = time.perf_counter()

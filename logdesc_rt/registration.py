@@ -406,6 +406,40 @@ class Registrar:
         report = progress if progress is not None else (lambda message: None)
         report("matching: geometry, networks and Sinkhorn on the working subsets")
         pair = self._with_config(config).match(source, target)
+        return self._register_matched(pair, config, initial, report)
+
+    def register_matches(
+        self,
+        pair: PairMatches,
+        *,
+        estimator: str | None = None,
+        refine=_UNSET,
+        max_correspondence_distance: float | None = None,
+        seed: int | None = None,
+        init=None,
+        progress: Callable[[str], None] | None = None,
+    ) -> RegistrationResult:
+        """:meth:`register` from a pair already matched (:meth:`match`), without running the
+        networks again: candidate poses, verification, the success flag, optional ICP.
+
+        The keyword arguments are :meth:`register`'s and apply over the configuration the
+        pair was matched with (``pair.config``). ``register(s, t, **kw)`` equals
+        ``register_matches(match(s, t), **kw)``.
+        """
+        config = self.call_config(
+            pair.config,
+            estimator=estimator,
+            refine=refine,
+            max_correspondence_distance=max_correspondence_distance,
+            seed=seed,
+        )
+        initial = None if init is None else check_rigid_transformation(init, name="init")
+        return self._register_matched(pair, config, initial, progress or (lambda message: None))
+
+    def _register_matched(
+        self, pair: PairMatches, config: RuntimeConfig, initial: np.ndarray | None, report: Callable[[str], None]
+    ) -> RegistrationResult:
+        """Candidates from the matches (and ``initial``), verified; the best kept, refined."""
         timings = dict(pair.timings)
         with _timed(timings, "pose"):
             candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES or initial is None else []

@@ -53,6 +53,31 @@ def test_summarize_counts_successes_and_failures():
     assert np.isnan(summary["precision"])  # no method matches in these records
 
 
+def test_summarize_reports_the_success_flags_precision_and_recall():
+    records = [_record(0.0, 0.0), _record(1.0, 0.0), _record(30.0, 0.0), _record(40.0, 0.0)]
+    for record, flagged in zip(records, (True, False, True, False)):
+        record["flagged_success"] = flagged
+    summary = common.summarize(records)
+    assert summary["flag_precision"] == pytest.approx(0.5)  # 2 flagged: one right, one 30 deg off
+    assert summary["flag_recall"] == pytest.approx(0.5)  # 2 right: one flagged
+    assert np.isnan(common.summarize([_record(0.0, 0.0)])["flag_precision"])  # no flag recorded
+
+
+def test_verified_methods_are_what_register_returns(shared_data):
+    """logdesc_auto(_icp) record register()'s pose and flag, from the shared matches."""
+    from logdesc_rt import Registrar
+
+    pair = next(common.modelnet10_test_pairs(["partial"], count=1))
+    runner = methods.MethodRunner(("logdesc_fsr", *methods.VERIFIED_METHODS))
+    results = runner.run(pair.source, pair.target, seed=5)
+    registrar = Registrar()
+    for name, refine in methods.VERIFIED_METHODS.items():
+        expected = registrar.register(pair.source, pair.target, refine=refine, seed=5)
+        assert np.array_equal(results[name].transformation, expected.transformation)
+        record = common.pair_record(pair, name, results[name])
+        assert record["flagged_success"] == expected.success and record["confidence"] == expected.confidence
+
+
 def test_result_cache_resumes(tmp_path):
     path = tmp_path / "pairs.jsonl"
     cache = common.ResultCache(path)

@@ -71,6 +71,19 @@ def test_match_then_pose_equals_register(registrar, demo_pair):
         pair.pose("magic")
 
 
+def test_register_matches_finishes_what_match_started(registrar, demo_pair):
+    """``register_matches(match(s, t), **kw)`` is ``register(s, t, **kw)``, networks run once."""
+    pair = registrar.match(demo_pair.source, demo_pair.target)
+    for options in ({}, {"estimator": "svd", "seed": 2}, {"refine": "point_to_plane"}):
+        whole = registrar.register(demo_pair.source, demo_pair.target, **options)
+        finished = registrar.register_matches(pair, **options)
+        assert np.array_equal(finished.transformation, whole.transformation), options
+        assert (finished.success, finished.confidence, finished.pose_estimator) == (
+            whole.success, whole.confidence, whole.pose_estimator
+        )
+        assert finished.config == whole.config
+
+
 def test_prepare_is_where_match_starts(registrar, demo_pair):
     """``Registrar.prepare`` gives the clouds and geometry ``match`` feeds to the networks."""
     from logdesc_rt import compute_geometry
