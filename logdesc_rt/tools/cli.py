@@ -578,8 +578,9 @@ def _add_registration_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--subsampling", choices=("fps", "voxel"), default=None,
                         help="how clouds above the working size are reduced (default fps: farthest-point)")
     parser.add_argument("--config", type=Path, default=None, metavar="FILE.json",
-                        help="runtime configuration (JSON, any subset of the 'config' object --json prints); "
-                             "the flags above override it")
+                        help="runtime configuration (JSON, any subset of the 'config' object --json prints), "
+                             "applied over the model's defaults (its manifest's \"runtime\"); the flags above "
+                             "override it")
     parser.add_argument("--allow-failure", action="store_true",
                         help=f"exit 0 even when the result is not a success (default: exit {EXIT_NOT_SUCCESS})")
     parser.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
