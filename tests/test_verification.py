@@ -212,3 +212,22 @@ def test_registrar_and_call_configs_are_used_and_reported(demo_pair):
     assert call.source_points_used == len(demo_pair.source)
     with pytest.raises(ValueError, match="estimator"):
         registrar.register(demo_pair.source, demo_pair.target, estimator="magic")
+
+
+def test_a_fitted_calibration_written_into_a_manifest_is_the_models_flag(tmp_path):
+    """benchmarks/calibrate_success.py --manifest: the fit lands where the runtime reads it."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import calibrate_success
+
+    model = _model_copy(tmp_path, {"fsr": {"iterations": 7}})
+    fitted = dataclasses.replace(
+        VerificationConfig(), weights=tuple(0.1 * i for i in range(len(VERIFICATION_FEATURES))), bias=-1.5,
+        success_threshold=0.6,
+    )
+    calibrate_success.write_calibration(model, fitted)
+    config = Registrar(model).config
+    assert config.verification == fitted
+    assert config.fsr.iterations == 7  # the rest of the manifest's runtime section is kept
