@@ -55,7 +55,8 @@ def build_case(case: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     source = merged[np.random.default_rng([SEED, 1]).choice(len(merged), MERGED_POINTS, replace=False)]
     target = merged[np.random.default_rng([SEED, 2]).choice(len(merged), MERGED_POINTS, replace=False)]
     motion = np.eye(4)
-    motion[:3, :3] = Rotation.from_rotvec(np.radians(MERGED_TURN_DEG) * np.array([1.0, 2.0, 0.5]) / np.sqrt(5.25)).as_matrix()
+    axis = np.array([1.0, 2.0, 0.5]) / np.sqrt(5.25)  # a skew unit axis
+    motion[:3, :3] = Rotation.from_rotvec(np.radians(MERGED_TURN_DEG) * axis).as_matrix()
     motion[:3, 3] = (0.05, -0.02, 0.03)
     target = transform(target, motion)
     shift = np.full(3, FAR_AWAY_M)

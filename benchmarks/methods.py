@@ -63,7 +63,9 @@ ICP_METHODS = ("icp_point_to_plane",)
 # Refined method -> the coarse method whose pose ICP starts from.
 REFINED_FROM = {"logdesc_fsr_icp": "logdesc_fsr", "fpfh_fgr_icp": "fpfh_fgr"}
 REFINED_METHODS = tuple(REFINED_FROM)
-ALL_METHODS = LOGDESC_METHODS + tuple(VERIFIED_METHODS) + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
+ALL_METHODS = (
+    LOGDESC_METHODS + tuple(VERIFIED_METHODS) + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
+)
 OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp",)
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
