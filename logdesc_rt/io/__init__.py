@@ -61,7 +61,7 @@ import numpy as np
 from ..errors import LogdescError, PointCloudFileError  # noqa: F401 (PointCloudFileError: re-exported)
 from ..validation import as_points
 from . import e57, las, npy, off, pcd, ply, text
-from ._common import PARSE_ERRORS, check_readable_file, file_error
+from ._common import PARSE_ERRORS, MissingLibraryError, check_readable_file, file_error
 
 CORE_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".off")
 """Suffixes read and written with the run-time dependencies alone, float64 values exactly."""
@@ -96,16 +96,13 @@ def read_point_cloud(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     reader = _READERS.get(path.suffix.lower())
     if reader is None:
-        raise file_error(
-            path,
-            f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}",
-        )
+        raise _unsupported_suffix(path)
     check_readable_file(path)
     try:
         coordinates = reader(path)
     except LogdescError:
         raise
-    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+    except MissingLibraryError as error:
         raise file_error(path, str(error)) from error
     except MemoryError as error:
         # Only a corrupt header (a huge element count) gets here for files that fit on disk.
@@ -142,7 +139,7 @@ def read_point_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
         codec = las if OPTIONAL_SUFFIXES[suffix] == "las" else e57
         try:
             return codec.read_attributes(path)
-        except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+        except MissingLibraryError as error:
             raise file_error(path, str(error)) from error
         except PARSE_ERRORS as error:
             raise file_error(path, f"cannot parse as {suffix[1:].upper()}: {error}") from error
@@ -211,10 +208,7 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
     path = Path(path)
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
-        raise file_error(
-            path,
-            f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}",
-        )
+        raise _unsupported_suffix(path)
     points = as_points(points, name="points")
     extra = _check_attributes(attributes or {}, len(points))
     if extra and path.suffix.lower() == ".off":
@@ -224,10 +218,14 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
             _ATTRIBUTE_WRITERS[path.suffix.lower()](path, points, extra)
         else:
             writer(path, points)
-    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+    except MissingLibraryError as error:
         raise file_error(path, str(error)) from error
     except OSError as error:
         raise file_error(path, f"cannot write: {error.strerror or error}") from error
+
+
+def _unsupported_suffix(path: Path) -> PointCloudFileError:
+    return file_error(path, f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
 
 
 def open3d_points(cloud) -> np.ndarray | None:
@@ -270,13 +268,13 @@ def check_format_available(path: str | os.PathLike) -> None:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES:
-        raise file_error(path, f"unsupported file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+        raise _unsupported_suffix(path)
     try:
         if suffix in (".las", ".laz"):
             las.check_available(compressed=suffix == ".laz")
         elif suffix == ".e57":
             e57.check_available()
-    except (las.MissingLibraryError, e57.MissingLibraryError) as error:
+    except MissingLibraryError as error:
         raise file_error(path, str(error)) from error
 
 

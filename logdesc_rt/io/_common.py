@@ -27,6 +27,11 @@ PARSE_ERRORS = (
 DECIMAL_INTEGER = re.compile(r"[0-9]+")
 
 
+class MissingLibraryError(ImportError):
+    """The optional library of a format (laspy and its LAZ backend, pye57) is not installed;
+    the message names the extra to install."""
+
+
 def file_error(path: Path, problem: str) -> PointCloudFileError:
     """The error of every problem with a file: its message starts with the path."""
     return PointCloudFileError(f"{path}: {problem}")

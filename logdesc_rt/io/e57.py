@@ -24,14 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ._common import MissingLibraryError
+
 MAGIC = b"ASTM-E57"
 EXTRA = "e57"
 INSTALL_HINT = 'pip install "logdesc-rt[e57]" (pye57)'
 ATTRIBUTE_FIELDS = {"intensity": "intensity", "red": "colorRed", "green": "colorGreen", "blue": "colorBlue"}
-
-
-class MissingLibraryError(ImportError):
-    """pye57 is not installed."""
 
 
 def _pye57():

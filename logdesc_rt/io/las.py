@@ -31,16 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ._common import MissingLibraryError
+
 MAGIC = b"LASF"
 EXTRA = "las"
 INSTALL_HINT = 'pip install "logdesc-rt[las]" (laspy with its lazrs LAZ backend)'
 _MAX_STEPS = 2.0e9  # int32 holds +-2.1e9
 _MIN_SCALE = 1e-12
 _STANDARD_READ = ("intensity", "red", "green", "blue")
-
-
-class MissingLibraryError(ImportError):
-    """laspy, or its LAZ backend for a .laz file, is not installed."""
 
 
 def _laspy():
