@@ -334,7 +334,11 @@ class Registrar:
     ):
         self.network = OnnxNetwork(model_dir, threads=threads)
         self.manifest = self.network.manifest
-        self.config = self._resolved(self.manifest.runtime_config())  # the model's defaults first
+        model_defaults = self.manifest.runtime_config()
+        # The model's calibration (code defaults for a model without one), parsed once: every
+        # resolved config with verification None takes it.
+        self._model_verification = model_defaults.verification or VerificationConfig()
+        self.config = self._resolved(model_defaults)  # the model's defaults first
         config = self._given_config(config)
         if max_points is not None or subsampling is not None:
             config = dataclasses.replace(
@@ -676,13 +680,8 @@ class Registrar:
             config,
             subsampling=dataclasses.replace(config.subsampling, max_points=int(max_points)),
             matching=self.manifest.matching if config.matching is None else config.matching,
-            verification=self._model_verification() if config.verification is None else config.verification,
+            verification=self._model_verification if config.verification is None else config.verification,
         )
-
-    def _model_verification(self) -> VerificationConfig:
-        """The model's verification (its calibration), from its manifest's runtime defaults."""
-        verification = self.manifest.runtime_config().verification
-        return VerificationConfig() if verification is None else verification
 
     def _with_config(self, config: RuntimeConfig) -> "Registrar":
         """This Registrar, or a shallow copy sharing its network when ``config`` changes the
