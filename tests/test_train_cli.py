@@ -196,3 +196,50 @@ def test_geometry_on_the_device_trains_like_geometry_in_the_workers(tmp_path):
     for worker_record, device_record in zip(*logs):
         key = "loss" if worker_record["type"] == "train" else "val_loss"
         assert device_record[key] == pytest.approx(worker_record[key], rel=1e-4, abs=1e-5)
+
+
+def _cuboid_surface(sides, count: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, 3) points on the surface of an axis-aligned cuboid centred at the origin."""
+    sides = np.asarray(sides, dtype=np.float64)
+    points = rng.uniform(-0.5, 0.5, size=(count, 3)) * sides
+    face_axis = rng.integers(0, 3, size=count)
+    points[np.arange(count), face_axis] = np.sign(rng.normal(size=count)) * 0.5 * sides[face_axis]
+    return points
+
+
+def test_failure_kinds_tell_a_symmetric_flip_from_a_wrong_pose():
+    from scipy.spatial.transform import Rotation
+
+    from training.evaluate import PairResult, summarize
+
+    rng = np.random.default_rng(3)
+    box = _cuboid_surface((2.0, 1.0, 0.5), 3000, rng)
+    # Three arms of different lengths from one corner: no half-turn maps it onto itself.
+    tripod = np.concatenate([_cuboid_surface(sides, 1000, rng) + np.asarray(sides) / 2
+                             for sides in ((2.0, 0.1, 0.1), (0.1, 1.0, 0.1), (0.1, 0.1, 0.5))])
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("zyx", [30, 20, 10], degrees=True).as_matrix()
+    truth[:3, 3] = [0.3, -0.2, 0.1]
+    flipped = truth @ np.diag([1.0, -1.0, -1.0, 1.0])  # half-turn about the source's x axis first
+    near = np.eye(4)
+    near[:3, :3] = Rotation.from_euler("z", 10, degrees=True).as_matrix()
+    near = near @ truth
+
+    def result(shape, predicted, pose_failed=False):
+        source = shape - shape.mean(axis=0)  # the half-turn's axis runs through the centroid
+        return PairResult(
+            protocol="partial", index=0, T_pred=predicted, T_gt=truth, source=source,
+            target=source @ truth[:3, :3].T + truth[:3, 3], scale=float(np.linalg.norm(source, axis=1).max()),
+            pred_match=np.full(len(source), -1), gt_match=np.full(len(source), -1),
+            match_count=0, pose_failed=pose_failed, seconds=0.0,
+        )
+
+    assert result(box, truth).failure is None
+    assert result(box, near).failure == "near miss"
+    assert result(box, flipped).failure == "symmetric"
+    assert result(tripod, flipped).failure == "wrong"
+    assert result(tripod, np.eye(4), pose_failed=True).failure == "no pose"
+
+    summary = summarize([result(box, flipped), result(tripod, flipped), result(box, truth)])
+    assert summary["partial"]["failed_symmetric"] == 1 and summary["partial"]["failed_wrong"] == 1
+    assert summary["partial"]["rotation_under_5deg"] == 1 / 3

@@ -15,13 +15,16 @@ the same shape gets the same rigid motion under every protocol and every checkpo
 same pairs. The pipeline per pair mirrors the runtime:
 
     torch network (scores) -> NumPy Sinkhorn and mutual matches
-    (logdesc_rt.matching.sinkhorn_matches, the runtime's reader) -> FSR (logdesc_rt.pose.fsr) in network units
+    (logdesc_rt.matching.sinkhorn_matches, the runtime's reader) -> FSR in network units
+    (logdesc_rt.verification.estimate_pose, the runtime's estimator step)
     -> PairNormalization.pose_to_user_frame -> paper metrics in the user (dataset) frame.
 
 Reported per protocol: RMSE(R), MAE(R) (Euler 'zyx' degrees), RMSE(t), MAE(t), L_R (deg), L_t,
 L_RMSE (logdesc_rt.metrics.registration_metrics) and the matching precision / accuracy / recall
 of the mutual matches (logdesc_rt.metrics.matching_metrics, averaged over pairs), plus the
-median L_R and the number of pairs where no pose could be estimated (identity used).
+median L_R, the share of pairs with L_R < 5 degrees, and why the others missed
+(:attr:`PairResult.failure`: no pose, near miss, a symmetric alternative that fits as well as
+the truth, or wrong).
 
 The functions (:func:`register_from_log_assignment`, :func:`evaluate_model`,
 :func:`summarize`, :func:`format_markdown`) are reusable by benchmarks.
@@ -44,13 +47,16 @@ if __package__ in (None, ""):  # run as ``python training/evaluate.py``: import 
 
 import numpy as np
 
-from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig
+from pykdtree.kdtree import KDTree
+
+from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig, VerificationConfig
 from logdesc_rt.errors import InvalidPointCloudError
 from logdesc_rt.matching import Matches, matches_as_array, mutual_matches, sinkhorn_matches
 from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg
 from logdesc_rt.normalization import PairNormalization
-from logdesc_rt.pose import FsrConfig, fsr
+from logdesc_rt.pose import FsrConfig
 from logdesc_rt.registration import MIN_MATCHES
+from logdesc_rt.verification import estimate_pose
 from training.checkpoint import configs_from_checkpoint, load_checkpoint, model_from_checkpoint
 from training.data import (
     DEFAULT_DATA_ROOT,
@@ -82,6 +88,10 @@ __all__ = [
 ]
 
 DEFAULT_EVAL_SEED = 1234
+SUCCESS_ROTATION_DEG = 5.0  # the benchmarks' rotation threshold for a registered pair
+NEAR_MISS_DEG = 30.0
+SYMMETRIC_FIT_RATIO = 0.9
+FAILURE_KINDS = ("no pose", "near miss", "symmetric", "wrong")
 SPLITS = ("test", "val")
 TEST_SHAPES = 908
 
@@ -95,6 +105,8 @@ class PairResult:
         T_pred: (4, 4) predicted pose source -> target, user frame.
         T_gt: (4, 4) true pose, user frame.
         source: (N, 3) user-frame source (for L_RMSE).
+        target: (M, 3) user-frame target (for the fit of a wrong pose).
+        scale: the pair's scale (the larger cloud's radius, user units).
         pred_match: (N,) int64 predicted target index per source point, -1 unmatched.
         gt_match: (N,) int64 true counterpart, -1 none.
         match_count: number of mutual matches.
@@ -108,6 +120,8 @@ class PairResult:
     T_pred: np.ndarray
     T_gt: np.ndarray
     source: np.ndarray
+    target: np.ndarray
+    scale: float
     pred_match: np.ndarray
     gt_match: np.ndarray
     match_count: int
@@ -117,6 +131,32 @@ class PairResult:
     @property
     def rotation_error_deg(self) -> float:
         return float(rotation_error_deg(self.T_pred[:3, :3], self.T_gt[:3, :3]))
+
+    def fitness(self, pose: np.ndarray) -> float:
+        """Share of the source points within the runtime's inlier distance of the target after
+        ``pose`` (the verification's ``fitness``: ``distance_fraction`` x scale)."""
+        distance, _ = KDTree(self.target).query(self.source @ pose[:3, :3].T + pose[:3, 3], k=1)
+        return float(np.mean(distance < VerificationConfig().distance_fraction * self.scale))
+
+    @property
+    def failure(self) -> str | None:
+        """Why the rotation is 5 degrees or more off (None when it is not).
+
+        ``"no pose"``: fewer than 3 matches or degenerate ones; ``"near miss"``: under 30
+        degrees, the right alignment found roughly; ``"symmetric"``: a different alignment
+        that fits the target at least 90 % as well as the truth (a shape that looks the same
+        turned: geometry alone cannot tell, an orientation prior can); ``"wrong"``: the rest.
+        """
+        error = self.rotation_error_deg
+        if error < SUCCESS_ROTATION_DEG:
+            return None
+        if self.pose_failed:
+            return "no pose"
+        if error < NEAR_MISS_DEG:
+            return "near miss"
+        if self.fitness(self.T_pred) >= SYMMETRIC_FIT_RATIO * self.fitness(self.T_gt):
+            return "symmetric"
+        return "wrong"
 
 
 # ----------------------------------------------------------------------------- per pair
@@ -154,8 +194,9 @@ def register_from_matches(
     """The FSR pose of mutual matches in network units: (T (4, 4), the matches, failed)."""
     if len(matches) < MIN_MATCHES:
         return np.eye(4), matches, True
-    try:
-        estimate = fsr(
+    try:  # the runtime's estimator step (what PairMatches.pose("fsr") runs)
+        pose = estimate_pose(
+            "fsr",
             source_network[matches.source_index],
             target_network[matches.target_index],
             matches.confidence,
@@ -163,7 +204,7 @@ def register_from_matches(
         )
     except InvalidPointCloudError:  # TooFewPoints / Degenerate: no pose is defined
         return np.eye(4), matches, True
-    return estimate.transformation, matches, False
+    return pose, matches, False
 
 
 # ----------------------------------------------------------------------------- test pairs
@@ -272,6 +313,8 @@ def evaluate_model(
                         T_pred=normalization.pose_to_user_frame(pose_net),
                         T_gt=batch["T_gt_user"][row].numpy(),
                         source=batch["source_user"][row].numpy(),
+                        target=batch["target_user"][row].numpy(),
+                        scale=float(batch["scale"][row]),
                         pred_match=matches_as_array(matches, len(source_net)),
                         gt_match=batch["gt_match_src"][row].numpy(),
                         match_count=len(matches),
@@ -310,7 +353,8 @@ def summarize(results: list[PairResult]) -> dict[str, dict[str, float]]:
     Registration metrics follow :func:`logdesc_rt.metrics.registration_metrics` (user frame);
     matching P/A/R are averaged over pairs with ``nanmean`` (a pair without predicted matches
     has no precision). Extra keys: ``l_r_median``, ``pose_failures``, ``matches_mean``,
-    ``pairs``, ``seconds_per_pair`` (NumPy part only).
+    ``pairs``, ``seconds_per_pair`` (NumPy part only), ``rotation_under_5deg`` and one
+    ``failed_<kind>`` count per :data:`FAILURE_KINDS` (spaces as underscores).
     """
     protocols = list(dict.fromkeys(result.protocol for result in results))
     groups = {protocol: [r for r in results if r.protocol == protocol] for protocol in protocols}
@@ -327,6 +371,10 @@ def summarize(results: list[PairResult]) -> dict[str, dict[str, float]]:
             metrics[name] = float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
         metrics["l_r_median"] = float(np.median([r.rotation_error_deg for r in group]))
         metrics["pose_failures"] = int(sum(r.pose_failed for r in group))
+        failures = [r.failure for r in group]
+        metrics["rotation_under_5deg"] = float(np.mean([kind is None for kind in failures]))
+        for kind in FAILURE_KINDS:
+            metrics[f"failed_{kind.replace(' ', '_')}"] = int(sum(f == kind for f in failures))
         metrics["matches_mean"] = float(np.mean([r.match_count for r in group]))
         metrics["seconds_per_pair"] = float(np.mean([r.seconds for r in group]))
         metrics["pairs"] = len(group)
@@ -347,7 +395,11 @@ _COLUMNS = [
     ("A %", "accuracy", "{:.1f}"),
     ("R %", "recall", "{:.1f}"),
     ("matches", "matches_mean", "{:.0f}"),
-    ("failed", "pose_failures", "{:d}"),
+    ("L_R < 5° %", "rotation_under_5deg", "{:.1f}"),
+    ("no pose", "failed_no_pose", "{:d}"),
+    ("near miss", "failed_near_miss", "{:d}"),
+    ("symmetric", "failed_symmetric", "{:d}"),
+    ("wrong", "failed_wrong", "{:d}"),
     ("pairs", "pairs", "{:d}"),
 ]
 
@@ -364,7 +416,7 @@ def format_markdown(summary: dict, meta: dict | None = None) -> str:
         cells = []
         for _, key, fmt in _COLUMNS:
             value = metrics.get(key, float("nan"))
-            if key in ("precision", "accuracy", "recall"):
+            if key in ("precision", "accuracy", "recall", "rotation_under_5deg"):
                 value = 100.0 * value
             if isinstance(value, float) and not math.isfinite(value):
                 cells.append("n/a")
