@@ -243,3 +243,46 @@ def test_failure_kinds_tell_a_symmetric_flip_from_a_wrong_pose():
     summary = summarize([result(box, flipped), result(tripod, flipped), result(box, truth)])
     assert summary["partial"]["failed_symmetric"] == 1 and summary["partial"]["failed_wrong"] == 1
     assert summary["partial"]["rotation_under_5deg"] == 1 / 3
+
+
+def test_provenance_is_derived_from_the_log_and_its_command_parses_back(trained, tmp_path):
+    from training.provenance import derived_provenance
+    from training.train import build_parser
+
+    provenance = derived_provenance(trained / "log.jsonl", trained / "last.pt")
+    records = _log(trained)
+    assert provenance["step"] == records[-1]["step"] and provenance["pairs_seen"] == records[-1]["pairs_seen"]
+    assert sum(run["pairs"] for run in provenance["invocations"]) == provenance["pairs_seen"]
+    assert set(provenance["validation"]["by_step"]) == {str(r["step"]) for r in records if r["type"] == "val"}
+
+    command = provenance["resume_command"].split()
+    assert command[:3] == ["python", "-m", "training.train"]
+    parsed = vars(build_parser().parse_args(command[3:]))
+    last_arguments = [r for r in records if r["type"] in ("start", "resume")][-1]["args"]
+    for name, value in last_arguments.items():
+        if name not in ("resume", "max_minutes"):
+            assert str(parsed[name]) == str(value), name
+    assert parsed["resume"] == str(trained / "last.pt")
+
+
+def test_provenance_lists_each_invocation_with_what_it_changed():
+    from training.provenance import invocations
+
+    def progress(kind, step, **extra):
+        return {"type": kind, "step": step, "pairs_seen": 8 * step, "wall_time_s": 10.0 * step, **extra}
+
+    records = [
+        progress("start", 0, git_commit="a", args={"lr": 1e-3, "out": "runs/x", "max_minutes": 60}),
+        progress("train", 5), progress("stop", 5, reason="signal SIGINT"),
+        progress("resume", 5, git_commit="b", args={"lr": 1e-3, "out": "elsewhere", "max_minutes": 30}),
+        progress("train", 9),  # killed: no stop record
+        progress("resume", 9, git_commit="c", args={"lr": 5e-4, "out": "elsewhere"}),
+        progress("train", 12),
+    ]
+    runs = invocations(records)
+    assert [(r["from_step"], r["to_step"], r["pairs"]) for r in runs] == [(0, 5, 40), (5, 9, 32), (9, 12, 24)]
+    assert [r["git_commit"] for r in runs] == ["a", "b", "c"]
+    assert runs[0]["changed_arguments"] == {"lr": 1e-3}  # --out / --max-minutes are not training
+    assert runs[1]["changed_arguments"] == {} and runs[2]["changed_arguments"] == {"lr": 5e-4}
+    assert runs[0]["ended"] == "signal SIGINT" and "killed" in runs[1]["ended"]
+    assert "still running" in runs[2]["ended"]

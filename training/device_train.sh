@@ -14,8 +14,10 @@
 # Environment overrides (defaults in brackets), so the same script is tested on the CPU:
 #   RESUME [training/checkpoints/v3_cpu_last.pt]  DEVICE [cuda]  MINUTES [9]  BATCH [48]
 #   WORKERS [4]  DATA [.device_pack]  OUT [$OUT, or runs/device]  EXTRA [--amp]
-# The protocol mix is the CPU run's since its step 309 (clean pairs were solved by then: 0.004 deg
-# median, 99 % match precision at step 200; partial pairs are where v3 trails v2).
+# The schedule is the CPU run's since its step 1103 (cosine to step 8000), so a GPU run does not
+# stop at an older horizon. The protocol mix is the CPU run's since its step 309 (clean pairs were
+# solved by then: 0.004 deg median, 99 % match precision at step 200; partial pairs are where v3
+# trails v2).
 # The geometry runs on the GPU with the batch (--geometry-on-device: the torch port of the
 # NumPy reference, tests/test_geometry_torch.py), so a few workers only draw pairs.
 set -euo pipefail
@@ -30,7 +32,7 @@ python -m training.train \
     --device "${DEVICE:-cuda}" --geometry-on-device --workers "${WORKERS:-4}" \
     --batch-size "${BATCH:-48}" --points-per-cloud 1024 \
     --max-minutes "${MINUTES:-9}" --checkpoint-minutes 2 --val-every 300 --val-pairs 128 \
-    --max-steps 3000 --decay-steps 3000 --lr 1e-3 --warmup-steps 100 \
+    --max-steps 8000 --decay-steps 8000 --lr 1e-3 --warmup-steps 100 \
     --protocol-mix clean:0.1,noisy:0.3,partial:0.6 \
     --data-root "${DATA:-.device_pack}" --no-progress --log-every 20 ${EXTRA---amp}
 ls -la "$out"
