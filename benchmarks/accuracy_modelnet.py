@@ -7,6 +7,7 @@ FGR (parameters tuned on validation pairs by ``tune_open3d.py``), and point-to-p
 the identity. The paper's published ModelNet40 figures are shown beside ours, labelled.
 
     python benchmarks/accuracy_modelnet.py [--pairs 908] [--methods ...] [--threads 2]
+        [--model-dir DIR --out OTHER_DIR]   # a candidate model instead of the bundled one
 
 Per-pair results go to ``benchmarks/results/modelnet10_accuracy_pairs.jsonl`` as they come,
 so an interrupted run resumes; ``--fresh`` starts over. The repository keeps them gzipped
@@ -34,6 +35,7 @@ from common import (  # noqa: E402
     SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
     bundled_model_id,
+    model_description,
     command_line,
     is_success,
     machine_info,
@@ -75,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--model-dir", type=Path, default=None,
+                        help="an exported model folder (export/to_onnx.py) instead of the bundled one; "
+                             "use another --out: the per-pair cache is per model")
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
     return parser
 
@@ -130,11 +135,11 @@ def main(argv=None) -> int:
         methods = [m for m in methods if m not in OPEN3D_METHODS]
         print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id())
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir))
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]
     coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))
-    runner = MethodRunner(coarse, threads=args.threads)
+    runner = MethodRunner(coarse, threads=args.threads, model_dir=args.model_dir)
 
     total = args.pairs * len(args.protocols)
     pairs = modelnet10_test_pairs(args.protocols, args.pairs, args.seed)
@@ -158,7 +163,7 @@ def main(argv=None) -> int:
         "# ModelNet10 test: registration accuracy",
         "",
         f"All methods on the same pairs: the first {args.pairs} ModelNet10 test shapes, seed {args.seed} "
-        "(the pairs of `training/evaluate.py`). The model is the bundled one.",
+        f"(the pairs of `training/evaluate.py`). The model is {model_description(args.model_dir)}.",
         "Angles in degrees (RMSE/MAE over Euler angles, DCP's convention; L_R isotropic), translations in "
         "dataset units (unit sphere). Success: L_R < 5 deg and translation error < 5 % of the object's "
         "radius. P/A/R: matching precision / accuracy / recall against the true correspondences, for "

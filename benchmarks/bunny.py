@@ -1,6 +1,6 @@
 """Accuracy on the Stanford Bunny: the paper's protocol on its scans, and real pairs.
 
-The model is the bundled one, trained on ModelNet only; the methods are those of
+The model is the bundled one (or ``--model-dir``'s), trained on ModelNet only; the methods are those of
 ``benchmarks/methods.py`` (as in ``accuracy_modelnet.py``). Two parts:
 
 (a) Paper protocol (the paper follows R-PointHop: the 10 range scans, synthetic
@@ -72,6 +72,7 @@ from common import (  # noqa: E402
     BenchmarkPair,
     ResultCache,
     bundled_model_id,
+    model_description,
     command_line,
     machine_info,
     markdown_table,
@@ -402,7 +403,8 @@ def report(args, scans, overlaps, selection, real_pairs, records, summary, runne
     lines = [
         "# Stanford Bunny: registration accuracy",
         "",
-        "The bundled model (trained on ModelNet10 train + part of ModelNet40 train) and the baselines of "
+        f"The model is {model_description(args.model_dir)}, trained on ModelNet10 train + part of "
+        "ModelNet40 train; the baselines are those of "
         "`benchmarks/methods.py`, on the 10 range scans of the Stanford Bunny "
         "(`../shared/data/stanford_bunny`). Angles in degrees: RMSE(R) / MAE(R) over "
         "the three Euler-angle differences of every pair (DCP's convention, the "
@@ -523,11 +525,13 @@ def report(args, scans, overlaps, selection, real_pairs, records, summary, runne
 FLAG_STEM = "bunny_success_flag"
 
 
-def success_flag_rows(real_pairs: list[BenchmarkPair], threads: int | None) -> list[dict]:
+def success_flag_rows(
+    real_pairs: list[BenchmarkPair], threads: int | None, model_dir: Path | None = None
+) -> list[dict]:
     """``Registrar.register`` on each real pair, without and with ICP: error, right, flag."""
     from logdesc_rt import Registrar
 
-    registrar = Registrar(threads=threads)
+    registrar = Registrar(model_dir, threads=threads)
     rows = []
     for pair in real_pairs:
         for refine in (None, "point_to_plane"):
@@ -601,6 +605,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=None,
                         help="onnxruntime threads (default: all cores)")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--model-dir", type=Path, default=None,
+                        help="an exported model folder (export/to_onnx.py) instead of the bundled one; "
+                             "use another --out: the per-pair cache is per model")
     parser.add_argument("--fresh", action="store_true",
                         help="ignore cached per-pair results")
     parser.add_argument("--flag-only", action="store_true",
@@ -616,7 +623,7 @@ def main(argv=None) -> int:
     if args.flag_only:
         scans = load_scans()
         real_pairs = real_scan_pairs(scans, select_scan_pairs(scans, args.overlap))
-        markdown, payload = success_flag_report(success_flag_rows(real_pairs, args.threads))
+        markdown, payload = success_flag_report(success_flag_rows(real_pairs, args.threads, args.model_dir))
         write_report(FLAG_STEM, markdown, payload, args.out)
         print(markdown)
         return 0
@@ -628,8 +635,8 @@ def main(argv=None) -> int:
         print(f"open3d is not installed (pip install open3d): skipping {skipped}",
               file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id())
-    runner = MethodRunner(methods, threads=args.threads)
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir))
+    runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
 
     scans = load_scans()
     print(f"measuring the overlaps of {len(scans)} scans ...", file=sys.stderr)

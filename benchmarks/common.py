@@ -178,6 +178,15 @@ def bundled_model_id(model_dir: Path | None = None) -> str:
     return digest.hexdigest()[:12]
 
 
+def model_description(model_dir: Path | None = None) -> str:
+    """How a report names the model it measured: the bundled one, or a candidate's folder,
+    with the name in its manifest's provenance."""
+    folder = Path(model_dir) if model_dir is not None else bundled_model_dir()
+    name = read_manifest(folder).provenance.get("name", "unnamed")
+    where = "the bundled model" if model_dir is None else f"the model in `{model_dir}`"
+    return f"{where} ({name}, id {bundled_model_id(model_dir)})"
+
+
 class ResultCache:
     """Append-only JSON-lines file of pair records; resumes an interrupted run.
 

@@ -252,6 +252,7 @@ class MethodRunner:
         parameters: Open3D parameters (default: the tuned ones).
         threads: onnxruntime threads (None: all cores).
         registrar: an existing :class:`Registrar` to reuse.
+        model_dir: the exported model the learned methods run (None: the bundled one).
     """
 
     def __init__(
@@ -260,6 +261,7 @@ class MethodRunner:
         parameters: FpfhParameters | None = None,
         threads: int | None = None,
         registrar: Registrar | None = None,
+        model_dir: Path | None = None,
     ) -> None:
         unknown = set(methods) - set(ALL_METHODS)
         if unknown:
@@ -267,7 +269,7 @@ class MethodRunner:
         self.methods = tuple(methods)
         self.parameters = parameters or FpfhParameters.tuned()
         needs_network = any(m.startswith("logdesc") for m in self.methods)
-        self.registrar = registrar or (Registrar(threads=threads) if needs_network else None)
+        self.registrar = registrar or (Registrar(model_dir, threads=threads) if needs_network else None)
         self._subsets: dict[tuple[str, ...], MethodRunner] = {}
 
     def run(

@@ -243,3 +243,23 @@ def test_large_cloud_cases_carry_their_true_pose(shared_data):
         near = np.median(tree.query(moved)[0])
         wrong = np.median(tree.query(source[::20])[0])
         assert near < 1e-3 < wrong, (case, near, wrong)  # metres
+
+
+def test_the_learned_methods_run_the_model_folder_they_are_given(tmp_path):
+    import shutil
+
+    from logdesc_rt.errors import ModelFileError
+    from logdesc_rt.network import bundled_model_dir
+
+    candidate = tmp_path / "candidate"
+    shutil.copytree(bundled_model_dir(), candidate)
+    runner = methods.MethodRunner(["logdesc_fsr"], model_dir=candidate)
+    assert runner.registrar.network.model_dir == candidate
+    assert f"`{candidate}`" in common.model_description(candidate)
+    assert common.model_description().startswith("the bundled model")
+    # Same files, same id: the per-pair cache would accept the copy's records.
+    assert common.bundled_model_id(candidate) == common.bundled_model_id()
+
+    (candidate / "matcher.onnx").write_bytes(b"not a model")
+    with pytest.raises(ModelFileError):
+        methods.MethodRunner(["logdesc_fsr"], model_dir=candidate)
