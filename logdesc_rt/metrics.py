@@ -171,12 +171,19 @@ def registration_metrics(
     }
 
 
-def _as_match_vector(matches, name: str) -> np.ndarray:
+# A ground-truth label for a point that is neither matched nor unmatched (two samplings of one
+# surface: near a counterpart, but not one-to-one; logdesc_rt.synthetic's resampled pairs).
+IGNORED = -2
+
+
+def _as_match_vector(matches, name: str, allow_ignored: bool = False) -> np.ndarray:
     array = np.asarray(matches)
     if array.ndim != 1 or not np.issubdtype(array.dtype, np.integer):
         raise ValueError(f"{name}: expected a 1-D integer array, got shape {array.shape} dtype {array.dtype}")
-    if np.any(array < -1):
-        raise ValueError(f"{name}: entries must be a target index >= 0 or -1 (unmatched)")
+    lowest = IGNORED if allow_ignored else -1
+    if np.any(array < lowest):
+        allowed = f">= 0, -1 (unmatched) or {IGNORED} (ignored)" if allow_ignored else ">= 0 or -1 (unmatched)"
+        raise ValueError(f"{name}: entries must be a target index {allowed}")
     return array.astype(np.int64)
 
 
@@ -185,7 +192,8 @@ def matching_metrics(pred_match, gt_match) -> dict[str, float]:
 
     For each of the M source points: ``pred_match[i]`` is the predicted target index, or -1
     when the point is left unmatched (dustbin); ``gt_match[i]`` is its true counterpart, or
-    -1 when it has none (outside the overlap). A predicted match is *correct* when it equals
+    -1 when it has none (outside the overlap), or ``IGNORED`` (-2) when it is unlabelled: such
+    points count in none of the three ratios. A predicted match is *correct* when it equals
     the true counterpart.
 
     - precision = correct predicted matches / predicted matches (``pred >= 0``)
@@ -195,7 +203,7 @@ def matching_metrics(pred_match, gt_match) -> dict[str, float]:
 
     Args:
         pred_match: (M,) int, target index or -1.
-        gt_match: (M,) int, target index or -1.
+        gt_match: (M,) int, target index, -1 or ``IGNORED``.
 
     Returns:
         dict with floats ``precision``, ``accuracy``, ``recall`` in [0, 1]. A ratio whose
@@ -203,9 +211,11 @@ def matching_metrics(pred_match, gt_match) -> dict[str, float]:
         with ``np.nanmean`` skips it instead of counting it as 0 or 1.
     """
     predicted = _as_match_vector(pred_match, "pred_match")
-    truth = _as_match_vector(gt_match, "gt_match")
+    truth = _as_match_vector(gt_match, "gt_match", allow_ignored=True)
     if predicted.shape != truth.shape:
         raise ValueError(f"matching_metrics: pred_match {predicted.shape} and gt_match {truth.shape} differ")
+    labelled = truth != IGNORED
+    predicted, truth = predicted[labelled], truth[labelled]
     matched = predicted >= 0
     correct = int(np.count_nonzero(matched & (predicted == truth)))
     correctly_unmatched = int(np.count_nonzero(~matched & (truth == -1)))

@@ -9,6 +9,18 @@ DCP/PRNet) and translated uniformly in [-0.5, 0.5] per axis; both randomly permu
 "noisy" adds N(0, 0.01^2) noise clipped to +-0.05 to every coordinate of both clouds;
 "partial" adds the noise and keeps, independently in each cloud, the 768 points nearest to a
 far point. Ground-truth correspondences are known by construction.
+
+Beyond the paper: in its pairs both clouds hold the *same* samples of the surface (up to
+noise), which real scan pairs never do; a network can learn to rely on it. The resampled
+protocols split the shape's points at random into two disjoint halves, one per cloud, so no
+point has a twin ("resampled": noise as "noisy"; "resampled_partial": also the crop). Their
+correspondences come from geometry, as for real scans (SuperGlue's labelling): mutual nearest
+neighbours (noise-free positions, one frame) closer than ``MATCH_RADIUS_SPACINGS`` x the
+local point spacing are matches; a point with nothing of the other cloud within
+``UNMATCHED_RADIUS_SPACINGS`` x spacing has no counterpart (-1); the rest are ``IGNORED``
+(-2): near a counterpart, but not one-to-one, so neither label would be true. The spacing is
+local (ModelNet's samples are not uniform: within one shape the nearest-neighbour distance
+varies fourfold): a point's distance to its third nearest neighbour in the whole shape.
 """
 
 from __future__ import annotations
@@ -19,10 +31,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pykdtree.kdtree import KDTree
+
 from .config import NormalizationConfig
+from .metrics import IGNORED
 from .normalization import PairNormalization
 
-PROTOCOLS: tuple[str, ...] = ("clean", "noisy", "partial")
+PAPER_PROTOCOLS: tuple[str, ...] = ("clean", "noisy", "partial")
+RESAMPLED_PROTOCOLS: tuple[str, ...] = ("resampled", "resampled_partial")
+PROTOCOLS: tuple[str, ...] = PAPER_PROTOCOLS + RESAMPLED_PROTOCOLS
 SOURCE_POINTS = 1024  # PRNet: the source is the first 1024 points of a shape
 PARTIAL_FRACTION = 0.75  # 768 of 1024 points survive the partial crop
 MAX_ANGLE_DEG = 45.0
@@ -34,6 +51,12 @@ FAR_POINT_DISTANCE = 500.0
 # is at most NOISE_CLIP per coordinate, i.e. NOISE_CLIP*sqrt(3) in norm, and a rotation keeps
 # norms, so the two noises add up to at most twice that.
 NOISE_BOUND = 2.0 * NOISE_CLIP * math.sqrt(3.0)
+# Resampled pairs' labels, in units of a point's local spacing in the shape (the distance to its
+# SPACING_NEIGHBOUR-th nearest neighbour): on ModelNet shapes about half the points of a
+# resampled pair get a match, and almost none of an uncropped pair count as without counterpart.
+SPACING_NEIGHBOUR = 3
+MATCH_RADIUS_SPACINGS = 1.5
+UNMATCHED_RADIUS_SPACINGS = 3.0
 
 
 @dataclass(frozen=True)
@@ -41,13 +64,15 @@ class Pair:
     """A registration pair with its ground truth in the user and in the network frame.
 
     Attributes:
-        protocol: ``"clean"``, ``"noisy"`` or ``"partial"``.
+        protocol: one of :data:`PROTOCOLS`.
         source: (N, 3) float64 source points, user frame (dataset units, unit sphere).
         target: (M, 3) float64 target points, user frame.
         T_gt: (4, 4) float64 user-frame pose mapping source onto target: y = R x + t.
         gt_match_src: (N,) int64, index of the source point's counterpart in ``target``, -1 if
-            it has none (cropped away in the target).
-        gt_match_tgt: (M,) int64, the inverse map (index into ``source`` or -1).
+            it has none (cropped away in the target), ``IGNORED`` (-2, resampled protocols
+            only) if it is unlabelled.
+        gt_match_tgt: (M,) int64, the inverse map (index into ``source``, -1 or -2); the
+            matches are one-to-one.
         normalization: the runtime's similarity transforms of this pair.
         source_network: (N, 3) float64 source in network units.
         target_network: (M, 3) float64 target in network units.
@@ -82,6 +107,42 @@ def partial_keep(points: np.ndarray, count: int, rng: np.random.Generator) -> np
     return np.sort(np.argsort(distance, kind="stable")[:count])
 
 
+def resampled_correspondences(
+    base: np.ndarray, source_origin: np.ndarray, target_origin: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Labels of two clouds that sample one shape at different points (module docstring).
+
+    Args:
+        base: (P, 3) the shape's points (noise-free, one frame).
+        source_origin: (N,) int64 the base point at each source position.
+        target_origin: (M,) int64 the base point at each target position.
+
+    Returns:
+        (gt_match_src (N,), gt_match_tgt (M,)) int64: the counterpart's position, -1 (none
+        within ``UNMATCHED_RADIUS_SPACINGS`` spacings) or ``IGNORED``; matches are mutual
+        nearest neighbours within ``MATCH_RADIUS_SPACINGS`` spacings, so one-to-one.
+    """
+    base_distance, _ = KDTree(base).query(base, k=SPACING_NEIGHBOUR + 1)
+    spacing = base_distance[:, SPACING_NEIGHBOUR]  # (P,) local spacing of every base point
+    source_spacing, target_spacing = spacing[source_origin], spacing[target_origin]
+    source_points, target_points = base[source_origin], base[target_origin]
+    to_target, nearest_target = KDTree(target_points).query(source_points, k=1)
+    to_source, nearest_source = KDTree(source_points).query(target_points, k=1)
+    nearest_target, nearest_source = nearest_target.astype(np.int64), nearest_source.astype(np.int64)
+
+    gt_match_src = np.full(len(source_points), IGNORED, dtype=np.int64)
+    gt_match_tgt = np.full(len(target_points), IGNORED, dtype=np.int64)
+    gt_match_src[to_target >= UNMATCHED_RADIUS_SPACINGS * source_spacing] = -1
+    gt_match_tgt[to_source >= UNMATCHED_RADIUS_SPACINGS * target_spacing] = -1
+    mutual = (nearest_source[nearest_target] == np.arange(len(source_points))) & (
+        to_target < MATCH_RADIUS_SPACINGS * source_spacing
+    )
+    matched_sources = np.flatnonzero(mutual)
+    gt_match_src[matched_sources] = nearest_target[matched_sources]
+    gt_match_tgt[nearest_target[matched_sources]] = matched_sources
+    return gt_match_src, gt_match_tgt
+
+
 def make_pair(
     shape_points,
     protocol: str,
@@ -95,16 +156,19 @@ def make_pair(
     """Build one registration pair from a shape (PRNet / LoGDesc protocol).
 
     Draw order (fixed, so that one seed gives the same motion under every protocol): the three
-    angles, the translation, the optional point subset, the two permutations, the noise of the
-    source, the noise of the target, the source crop, the target crop, and last the optional
-    whole-pair rotation (so a seed gives the same pair with or without it, only turned).
+    angles, the translation, the optional point subset, the split into halves (resampled
+    protocols only), the two permutations, the noise of the source, the noise of the target,
+    the source crop, the target crop, and last the optional whole-pair rotation (so a seed
+    gives the same pair with or without it, only turned).
 
     Args:
         shape_points: (P, 3) points of one shape, P >= 1024 (or >= ``points_per_cloud``).
         protocol: ``"clean"``; ``"noisy"`` (independent N(0, 0.01^2) noise clipped to
             [-0.05, 0.05] on every coordinate of both clouds); ``"partial"`` (noise as in
             ``"noisy"`` plus, independently in each cloud, keeping the points nearest to a far
-            point; the paper's noisy-partial protocol).
+            point; the paper's noisy-partial protocol); ``"resampled"`` / ``"resampled_partial"``
+            (as ``"noisy"`` / ``"partial"``, but each cloud holds its own half of the points:
+            module docstring).
         rng: the generator all randomness comes from.
         points_per_cloud: optionally use a random subset of this many of the 1024 source
             points before building the pair (faster training); None keeps all 1024.
@@ -118,7 +182,8 @@ def make_pair(
 
     Returns:
         :class:`Pair`. Clean and noisy pairs have N = M = n points, partial ones
-        ``partial_points`` each.
+        ``partial_points`` each; resampled ones n // 2 (and the crop keeps 75 % of that, or
+        ``partial_points``).
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}; expected one of {PROTOCOLS}")
@@ -140,32 +205,41 @@ def make_pair(
         base = base[np.sort(rng.choice(SOURCE_POINTS, size=points_per_cloud, replace=False))]
     count = len(base)
 
+    resampled = protocol in RESAMPLED_PROTOCOLS
+    if resampled:  # each cloud its own half of the shape's points: no point has a twin
+        halves = rng.permutation(count)
+        source_members, target_members = halves[: count // 2], halves[count // 2 : 2 * (count // 2)]
+    else:
+        source_members = target_members = np.arange(count)
     source = base.copy()
     target = base @ rotation.T + translation
     # origin[k] = index into `base` of the point now at position k.
-    source_origin = rng.permutation(count)
-    target_origin = rng.permutation(count)
-    if protocol in ("noisy", "partial"):
+    source_origin = source_members[rng.permutation(len(source_members))]
+    target_origin = target_members[rng.permutation(len(target_members))]
+    if protocol != "clean":
         source = source + np.clip(rng.normal(0.0, NOISE_SIGMA, size=(count, 3)), -NOISE_CLIP, NOISE_CLIP)
         target = target + np.clip(rng.normal(0.0, NOISE_SIGMA, size=(count, 3)), -NOISE_CLIP, NOISE_CLIP)
     source, target = source[source_origin], target[target_origin]
 
-    if protocol == "partial":
-        keep = round(PARTIAL_FRACTION * count) if partial_points is None else int(partial_points)
-        if not 3 <= keep <= count:
-            raise ValueError(f"partial_points must be in [3, {count}], got {keep}")
+    if protocol in ("partial", "resampled_partial"):
+        cloud_count = len(source_origin)
+        keep = round(PARTIAL_FRACTION * cloud_count) if partial_points is None else int(partial_points)
+        if not 3 <= keep <= cloud_count:
+            raise ValueError(f"partial_points must be in [3, {cloud_count}], got {keep}")
         source_keep = partial_keep(source, keep, rng)
         target_keep = partial_keep(target, keep, rng)
         source, source_origin = source[source_keep], source_origin[source_keep]
         target, target_origin = target[target_keep], target_origin[target_keep]
 
-    # Correspondences by origin index: position of each base point in either cloud (or -1).
-    target_position = np.full(count, -1, dtype=np.int64)
-    target_position[target_origin] = np.arange(len(target_origin))
-    source_position = np.full(count, -1, dtype=np.int64)
-    source_position[source_origin] = np.arange(len(source_origin))
-    gt_match_src = target_position[source_origin]
-    gt_match_tgt = source_position[target_origin]
+    if resampled:
+        gt_match_src, gt_match_tgt = resampled_correspondences(base, source_origin, target_origin)
+    else:  # by origin index: position of each base point in either cloud (or -1)
+        target_position = np.full(count, -1, dtype=np.int64)
+        target_position[target_origin] = np.arange(len(target_origin))
+        source_position = np.full(count, -1, dtype=np.int64)
+        source_position[source_origin] = np.arange(len(source_origin))
+        gt_match_src = target_position[source_origin]
+        gt_match_tgt = source_position[target_origin]
 
     pose = np.eye(4)
     pose[:3, :3] = rotation

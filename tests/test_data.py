@@ -7,7 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logdesc_rt.synthetic import NOISE_BOUND, SOURCE_POINTS
+from logdesc_rt.metrics import IGNORED
+from logdesc_rt.synthetic import (
+    MATCH_RADIUS_SPACINGS,
+    NOISE_BOUND,
+    PAPER_PROTOCOLS,
+    RESAMPLED_PROTOCOLS,
+    SOURCE_POINTS,
+    SPACING_NEIGHBOUR,
+)
 from training.data import (
     MODELNET10_FOLDER,
     MODELNET40_SUBSET_FOLDER,
@@ -56,9 +64,13 @@ def test_ground_truth_correspondences(protocol):
         if protocol == "clean":
             assert pair.gt_match_src.min() >= 0 and len(pair.source) == 1024
             np.testing.assert_allclose(residuals, 0.0, atol=1e-12)
+        elif protocol in RESAMPLED_PROTOCOLS:  # different samples: apart by up to 1.5 spacings
+            assert residuals.max() <= NOISE_BOUND + MATCH_RADIUS_SPACINGS * _largest_spacing(shape) + 1e-12
         else:
             assert residuals.max() <= NOISE_BOUND + 1e-12
             assert residuals.mean() > 1e-3  # the noise is really there
+        if protocol in PAPER_PROTOCOLS:
+            assert pair.gt_match_src.min() >= -1 and pair.gt_match_tgt.min() >= -1  # nothing ignored
         # Network frame: same correspondences under the network-frame pose, lengths / scale.
         residuals_network = _residuals(
             pair.source_network, pair.target_network, pair.T_gt_network, pair.gt_match_src
@@ -66,6 +78,41 @@ def test_ground_truth_correspondences(protocol):
         np.testing.assert_allclose(residuals_network * pair.normalization.scale, residuals, atol=1e-9)
         # And the network pose maps back to the user pose exactly.
         np.testing.assert_allclose(pair.normalization.pose_to_user_frame(pair.T_gt_network), pair.T_gt, atol=1e-12)
+
+
+def _largest_spacing(shape: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    distance, _ = cKDTree(shape).query(shape, k=SPACING_NEIGHBOUR + 1)
+    return float(distance[:, SPACING_NEIGHBOUR].max())
+
+
+@pytest.mark.parametrize("protocol", RESAMPLED_PROTOCOLS)
+def test_resampled_pairs_share_no_point_and_label_like_real_scans(protocol):
+    shape = _shape()
+    for seed in range(5):
+        pair = make_pair(shape, protocol, np.random.default_rng(seed))
+        size = SOURCE_POINTS // 2 if protocol == "resampled" else round(0.75 * (SOURCE_POINTS // 2))
+        assert pair.source.shape == (size, 3) and pair.target.shape == (size, 3)
+        src, tgt = pair.gt_match_src, pair.gt_match_tgt
+        matched = np.flatnonzero(src >= 0)
+        np.testing.assert_array_equal(tgt[src[matched]], matched)  # one-to-one
+        assert (src >= 0).sum() == (tgt >= 0).sum()
+        assert 0.3 < np.mean(src >= 0) < 0.8 and np.mean(src == IGNORED) > 0.1
+        if protocol == "resampled":  # full overlap: (almost) every point is near a counterpart
+            assert np.mean(src == -1) < 0.02
+        else:
+            assert np.mean(src == -1) > 0.0
+
+    # Different points indeed: the clean protocol's twin of a source point sits exactly on
+    # the moved point; here no target point does.
+    pair = make_pair(shape, "resampled", np.random.default_rng(0))
+    from scipy.spatial import cKDTree
+
+    gaps, _ = cKDTree(pair.target).query(_moved(pair.source, pair.T_gt), k=1)
+    clean = make_pair(shape, "clean", np.random.default_rng(0))
+    twins, _ = cKDTree(clean.target).query(_moved(clean.source, clean.T_gt), k=1)
+    assert twins.max() < 1e-9 and np.median(gaps) > 0.5 * np.median(cKDTree(shape).query(shape, k=2)[0][:, 1])
 
 
 def test_motion_ranges():
@@ -154,7 +201,13 @@ def test_pair_dataset_any_orientation_turns_its_pairs():
 
 
 def test_protocol_mix_and_schedule():
-    assert parse_protocol_mix("clean:1,partial:3") == {"clean": 0.25, "noisy": 0.0, "partial": 0.75}
+    assert parse_protocol_mix("clean:1,partial:3") == {
+        "clean": 0.25, "noisy": 0.0, "partial": 0.75, "resampled": 0.0, "resampled_partial": 0.0,
+    }
+    # A protocol added later with weight 0 leaves an older mix's validation pairs as they were.
+    old_mix = parse_protocol_mix("clean:0.1,noisy:0.3,partial:0.6")
+    old_protocols = [key.protocol for key in validation_keys(251, 96, old_mix, 0)]
+    assert old_protocols.count("partial") == 57 and old_protocols.count("clean") == 10
     assert parse_protocol_mix('{"noisy": 2}')["noisy"] == 1.0
     with pytest.raises(ValueError):
         parse_protocol_mix("dirty:1")
@@ -164,7 +217,9 @@ def test_protocol_mix_and_schedule():
     )
     assert schedule.protocol_at(0, 0.99) == "clean"
     assert schedule.protocol_at(100, 0.01) == "partial"
-    assert schedule.mix_at(50) == pytest.approx({"clean": 0.5, "noisy": 0.0, "partial": 0.5})
+    assert schedule.mix_at(50) == pytest.approx(
+        {"clean": 0.5, "noisy": 0.0, "partial": 0.5, "resampled": 0.0, "resampled_partial": 0.0}
+    )
     assert schedule.points_at(9) == 256 and schedule.points_at(10) == 1024
 
 
@@ -180,7 +235,7 @@ def test_batch_sampler_is_resumable_and_uniform_per_batch():
         assert len({key.protocol for key in batch}) == 1 and len(batch) == 4
     epoch0 = [key.index for batch in batches[:12] for key in batch]
     assert len(set(epoch0)) == 48  # no shape twice within an epoch
-    assert {key.protocol for batch in batches for key in batch} == set(PROTOCOLS)
+    assert {key.protocol for batch in batches for key in batch} == set(PAPER_PROTOCOLS)
 
 
 def test_validation_keys_are_fixed_and_proportional():
@@ -188,7 +243,7 @@ def test_validation_keys_are_fixed_and_proportional():
     keys = validation_keys(40, 100, mix, seed=1)
     assert keys == validation_keys(40, 100, mix, seed=1)
     counts = {p: sum(k.protocol == p for k in keys) for p in PROTOCOLS}
-    assert counts == {"clean": 20, "noisy": 30, "partial": 50}
+    assert counts == {"clean": 20, "noisy": 30, "partial": 50, "resampled": 0, "resampled_partial": 0}
     assert len(set(keys)) == 100  # shapes reused with another epoch word, never the same pair
     for batch in fixed_pair_batches(keys, 8):
         assert len({(k.protocol, k.points_per_cloud) for k in batch}) == 1 and len(batch) <= 8
@@ -281,6 +336,8 @@ def test_real_shape_pairs(data_root):
         sample = dataset[PairKey(0, 2, protocol, 1024)]
         residuals = _residuals(sample["source_user"], sample["target_user"], sample["T_gt_user"], sample["gt_match_src"])
         bound = 1e-9 if protocol == "clean" else NOISE_BOUND
+        if protocol in RESAMPLED_PROTOCOLS:
+            bound += MATCH_RADIUS_SPACINGS * _largest_spacing(shapes.val[2].astype(np.float64))
         assert residuals.max() <= bound
-        expected = 768 if protocol == "partial" else 1024
+        expected = {"partial": 768, "resampled": 512, "resampled_partial": 384}.get(protocol, 1024)
         assert sample["src_edges"].shape == (expected, 30, 15)

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from logdesc_rt.metrics import (
+    IGNORED,
     euler_angles_deg,
     matching_metrics,
     registration_metrics,
@@ -130,3 +131,17 @@ def test_matching_metrics_perfect_and_undefined():
         matching_metrics(np.zeros(3), np.zeros(3, dtype=int))
     with pytest.raises(ValueError, match=">= 0 or -1"):
         matching_metrics(np.array([-2, 0, 1]), np.zeros(3, dtype=int))
+
+
+def test_matching_metrics_leave_ignored_points_out():
+    # Points 2 and 3 are unlabelled (two samplings of one surface): whatever is predicted for
+    # them counts nowhere, so the scores equal those of the six labelled points alone.
+    truth = np.array([0, 1, IGNORED, IGNORED, -1, 5])
+    predicted = np.array([0, 4, 2, -1, -1, 5])
+    labelled = truth != IGNORED
+    assert matching_metrics(predicted, truth) == matching_metrics(predicted[labelled], truth[labelled])
+    assert matching_metrics(predicted, truth)["precision"] == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="ignored"):
+        matching_metrics(predicted, np.array([0, 1, -3, 0, 0, 0]))
+    with pytest.raises(ValueError, match=">= 0 or -1"):  # a prediction is never "ignored"
+        matching_metrics(truth, truth)

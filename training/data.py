@@ -40,7 +40,7 @@ from logdesc_rt.config import GeometryConfig, NormalizationConfig
 from logdesc_rt.errors import InvalidPointCloudError
 from logdesc_rt.geometry import compute_geometry
 # The pair protocol lives with the runtime, which the demo, tests and benchmarks share.
-from logdesc_rt.synthetic import PROTOCOLS, SOURCE_POINTS, Pair, make_pair
+from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS, SOURCE_POINTS, Pair, make_pair
 
 try:  # The pair construction is usable without torch (e.g. by NumPy-only benchmarks).
     from torch.utils.data import Dataset as _TorchDataset
@@ -53,6 +53,7 @@ __all__ = [
     "DEFAULT_DATA_ROOT",
     "MODELNET10_FOLDER",
     "MODELNET40_SUBSET_FOLDER",
+    "PAPER_PROTOCOLS",
     "PROTOCOLS",
     "ModelNetSplit",
     "Pair",
@@ -365,7 +366,8 @@ class PairDataset(_TorchDataset):
 
     - ``src_edges`` (N, k, 15) float32, ``src_points`` (N, 3) float32, ``src_normals``
       (N, 3) float32, and the same three ``tgt_*`` for the target;
-    - ``gt_match_src`` (N,) int64, ``gt_match_tgt`` (M,) int64 (-1 = no counterpart);
+    - ``gt_match_src`` (N,) int64, ``gt_match_tgt`` (M,) int64 (-1 = no counterpart, -2 =
+      ignored: see :mod:`logdesc_rt.synthetic`'s resampled protocols);
     - ``T_gt`` (4, 4) float32 network-frame pose source -> target;
     - ``T_gt_user`` (4, 4) float64, ``source_user`` (N, 3) / ``target_user`` (M, 3) float64:
       the raw clouds and pose in the user frame, for evaluation;

@@ -61,6 +61,7 @@ from training.checkpoint import configs_from_checkpoint, load_checkpoint, model_
 from training.data import (
     DEFAULT_DATA_ROOT,
     MODELNET10_FOLDER,
+    PAPER_PROTOCOLS,
     PROTOCOLS,
     SOURCE_POINTS,
     PairDataset,
@@ -250,7 +251,7 @@ def validation_dataset(
     )
 
 
-def evaluation_keys(num_shapes: int, protocols=PROTOCOLS, pairs: int | None = None) -> list[PairKey]:
+def evaluation_keys(num_shapes: int, protocols=PAPER_PROTOCOLS, pairs: int | None = None) -> list[PairKey]:
     """Pair i of each protocol is shape i with epoch 0: the first ``pairs`` shapes (all: None)."""
     count = num_shapes if pairs is None else min(int(pairs), num_shapes)
     return [PairKey(0, index, protocol, SOURCE_POINTS) for protocol in protocols for index in range(count)]
@@ -430,7 +431,7 @@ def evaluate_checkpoint(
     checkpoint_path,
     *,
     data_root=DEFAULT_DATA_ROOT,
-    protocols=PROTOCOLS,
+    protocols=PAPER_PROTOCOLS,
     pairs: int | None = None,
     seed: int = DEFAULT_EVAL_SEED,
     device="cpu",
@@ -489,7 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--split", default="test", choices=SPLITS,
                         help="test: ModelNet10 test shapes; val: the checkpoint's held-out validation "
                              "shapes (choose checkpoints on this)")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS)
+    parser.add_argument("--protocols", nargs="+", default=list(PAPER_PROTOCOLS), choices=PROTOCOLS,
+                        help="the paper's protocols by default; resampled and resampled_partial give each "
+                             "cloud its own samples of the shape, as real scans have")
     parser.add_argument("--pairs", type=int, default=None,
                         help=f"pairs per protocol: the first N shapes (default all; {TEST_SHAPES} test shapes)")
     parser.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED, help="pair seed (default 1234)")

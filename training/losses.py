@@ -1,15 +1,19 @@
 """Training losses on the Sinkhorn output and on the pre-transformer descriptors.
 
 Ground truth is given per point as the index of its counterpart in the other cloud, -1 when it
-has none: ``gt_match_src`` (B, N) int64 with values in [-1, M), ``gt_match_tgt`` (B, M) in
-[-1, N). The matching must be one-to-one (``gt_match_tgt[gt_match_src[i]] == i``);
-:func:`invert_matches` builds ``gt_match_tgt`` from ``gt_match_src`` when that holds.
+has none, ``IGNORED`` (-2) when it is unlabelled (resampled pairs,
+:mod:`logdesc_rt.synthetic`): ``gt_match_src`` (B, N) int64 with values in [-2, M),
+``gt_match_tgt`` (B, M) in [-2, N). Ignored points add no term to any loss. The matching must
+be one-to-one (``gt_match_tgt[gt_match_src[i]] == i``); :func:`invert_matches` builds
+``gt_match_tgt`` from ``gt_match_src`` when that holds (without ignored points).
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+
+from logdesc_rt.metrics import IGNORED
 
 __all__ = ["assignment_nll", "descriptor_infonce", "gap_loss", "invert_matches"]
 
@@ -25,7 +29,8 @@ def invert_matches(gt_match_src: torch.Tensor, target_count: int) -> torch.Tenso
 
 
 def _target_columns(gt_match: torch.Tensor, dustbin: int) -> torch.Tensor:
-    """Replace -1 (no counterpart) by the dustbin index."""
+    """Replace -1 (no counterpart) by the dustbin index (and ``IGNORED``, whose terms the
+    callers mask out)."""
     return torch.where(gt_match >= 0, gt_match, torch.full_like(gt_match, dustbin)).long()
 
 
@@ -38,14 +43,15 @@ def assignment_nll(
       * every source point i: -logP[i, gt(i)], where gt(i) is the dustbin column M when i has no
         counterpart (so this covers the matched pairs and the unmatched sources);
       * every unmatched target point j: -logP[N, j] (dustbin row).
-    Matched targets add no term of their own (their pair is counted once, on the source side).
-    Averaging: the terms of a pair are averaged (divided by N + #unmatched targets, MDGAT's
-    normalisation), then pairs are averaged over the batch.
+    Matched targets add no term of their own (their pair is counted once, on the source side);
+    ignored points add none at all. Averaging: the terms of a pair are averaged (divided by
+    #labelled sources + #unmatched targets, MDGAT's normalisation), then pairs are averaged
+    over the batch.
 
     Args:
         log_assignment: (B, N + 1, M + 1) from :func:`training.sinkhorn.log_optimal_transport`.
-        gt_match_src: (B, N) int64 in [-1, M).
-        gt_match_tgt: (B, M) int64 in [-1, N).
+        gt_match_src: (B, N) int64 in [-2, M).
+        gt_match_tgt: (B, M) int64 in [-2, N).
 
     Returns:
         Scalar loss.
@@ -53,11 +59,18 @@ def assignment_nll(
     rows, cols = log_assignment.shape[1] - 1, log_assignment.shape[2] - 1
     columns = _target_columns(gt_match_src, cols)
     source_terms = torch.gather(log_assignment[:, :rows, :], 2, columns.unsqueeze(2)).squeeze(2)
-    unmatched_tgt = (gt_match_tgt < 0).to(log_assignment.dtype)
+    labelled_src = (gt_match_src != IGNORED).to(log_assignment.dtype)
+    unmatched_tgt = (gt_match_tgt == -1).to(log_assignment.dtype)
     target_terms = log_assignment[:, rows, :cols] * unmatched_tgt
-    total = source_terms.sum(dim=1) + target_terms.sum(dim=1)
-    count = rows + unmatched_tgt.sum(dim=1)
+    total = (source_terms * labelled_src).sum(dim=1) + target_terms.sum(dim=1)
+    count = (labelled_src.sum(dim=1) + unmatched_tgt.sum(dim=1)).clamp(min=1.0)
     return (-total / count).mean()
+
+
+def _labelled_mean(terms: torch.Tensor, gt_match: torch.Tensor) -> torch.Tensor:
+    """(B,) mean of (B, N) per-point terms over the points that are not ``IGNORED``."""
+    labelled = (gt_match != IGNORED).to(terms.dtype)
+    return (terms * labelled).sum(dim=1) / labelled.sum(dim=1).clamp(min=1.0)
 
 
 def gap_loss(
@@ -71,13 +84,14 @@ def gap_loss(
     For every source row i (target = gt(i), or the dustbin column when unmatched):
         row_i = 2 log(1 + sum_{k != gt(i)} max(0, logP[i, k] - logP[i, gt(i)] + margin)),
     k over all M + 1 columns; likewise for every target column j over all N + 1 rows. The loss
-    of a pair is (mean_i row_i + mean_j col_j) / 2, averaged over the batch. It pushes every
-    wrong candidate at least ``margin`` (in log-probability) below the right one.
+    of a pair is (mean_i row_i + mean_j col_j) / 2 over labelled points (ignored ones add no
+    term), averaged over the batch. It pushes every wrong candidate at least ``margin`` (in
+    log-probability) below the right one.
 
     Args:
         log_assignment: (B, N + 1, M + 1).
-        gt_match_src: (B, N) int64 in [-1, M).
-        gt_match_tgt: (B, M) int64 in [-1, N).
+        gt_match_src: (B, N) int64 in [-2, M).
+        gt_match_tgt: (B, M) int64 in [-2, N).
         margin: hinge margin (0.5 in MDGAT and the official LoGDesc code).
 
     Returns:
@@ -90,14 +104,14 @@ def gap_loss(
     positive = torch.gather(source_rows, 2, columns.unsqueeze(2))
     hinge = F.relu(source_rows - positive + margin)
     hinge = hinge.masked_fill(F.one_hot(columns, cols + 1).bool(), 0.0)
-    row_loss = (2.0 * torch.log1p(hinge.sum(dim=2))).mean(dim=1)
+    row_loss = _labelled_mean(2.0 * torch.log1p(hinge.sum(dim=2)), gt_match_src)
 
     target_cols = log_assignment[:, :, :cols]  # (B, N + 1, M)
     sources = _target_columns(gt_match_tgt, rows)
     positive = torch.gather(target_cols, 1, sources.unsqueeze(1))
     hinge = F.relu(target_cols - positive + margin)
     hinge = hinge.masked_fill(F.one_hot(sources, rows + 1).transpose(1, 2).bool(), 0.0)
-    col_loss = (2.0 * torch.log1p(hinge.sum(dim=1))).mean(dim=1)
+    col_loss = _labelled_mean(2.0 * torch.log1p(hinge.sum(dim=1)), gt_match_tgt)
 
     return (0.5 * (row_loss + col_loss)).mean()
 
@@ -119,7 +133,7 @@ def descriptor_infonce(
     Args:
         desc_src: (B, N, d) unit-norm descriptors.
         desc_tgt: (B, M, d).
-        gt_match_src: (B, N) int64 in [-1, M).
+        gt_match_src: (B, N) int64 in [-2, M) (only matches, >= 0, count).
         temperature: softmax temperature (cosine similarities are in [-1, 1]).
         symmetric: also the target -> source direction.
 

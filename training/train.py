@@ -147,7 +147,12 @@ def build_parser() -> argparse.ArgumentParser:
     data = parser.add_argument_group("data")
     data.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     data.add_argument("--protocol-mix", default="clean:0.2,noisy:0.3,partial:0.5",
-                      help="protocol weights per batch, e.g. 'clean:0.2,noisy:0.3,partial:0.5'")
+                      help="protocol weights per batch, e.g. 'clean:0.2,noisy:0.3,partial:0.5'; protocols: "
+                           "clean, noisy, partial (the paper's) and resampled, resampled_partial (each cloud "
+                           "its own half of the shape's points, as real scans: logdesc_rt/synthetic.py)")
+    data.add_argument("--val-protocol-mix", default=None,
+                      help="the validation pairs' protocols (default --protocol-mix); keep a resumed run's "
+                           "validation set when its training mix changes")
     data.add_argument("--curriculum-steps", type=int, default=0,
                       help="move from --curriculum-start-mix to --protocol-mix over N steps (0 = off)")
     data.add_argument("--curriculum-start-mix", default="clean:1")
@@ -712,8 +717,9 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
     )
     val_loader = None
     if args.val_every > 0 and args.val_pairs > 0:
+        val_mix = parse_protocol_mix(args.val_protocol_mix) if args.val_protocol_mix else mix
         keys = validation_keys(
-            len(datasets["val"]), args.val_pairs, mix, args.seed, args.val_points_per_cloud or args.points_per_cloud
+            len(datasets["val"]), args.val_pairs, val_mix, args.seed, args.val_points_per_cloud or args.points_per_cloud
         )
         val_loader = DataLoader(
             datasets["val"], batch_sampler=fixed_pair_batches(keys, args.val_batch_size or args.batch_size), **options,
