@@ -31,16 +31,19 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # scripts run as `python benchmarks/x.py` from the project root
     sys.path.insert(0, str(ROOT))
 
-from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg  # noqa: E402
+from logdesc_rt.metrics import (  # noqa: E402
+    SUCCESS_ROTATION_DEG,
+    SUCCESS_TRANSLATION_FRACTION,
+    matching_metrics,
+    registration_metrics,
+    rotation_error_deg,
+)
 from logdesc_rt.network import bundled_model_dir, read_manifest  # noqa: E402
 from logdesc_rt.synthetic import SOURCE_POINTS, Pair, make_pair  # noqa: E402
 
 DATA_ROOT = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "benchmarks" / "results"
 DEFAULT_SEED = 1234  # training/evaluate.py's DEFAULT_EVAL_SEED
-# A pair counts as registered when both errors are below these (network units = object radius).
-SUCCESS_ROTATION_DEG = 5.0
-SUCCESS_TRANSLATION_FRACTION = 0.05
 
 # The paper's published figures (ModelNet40, its Tables 1-3 and 5), shown beside ours.
 PUBLISHED = {

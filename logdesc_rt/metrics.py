@@ -171,6 +171,11 @@ def registration_metrics(
     }
 
 
+# A pair counts as registered when both errors are below these (the benchmarks' and the
+# evaluation's criterion; the translation relative to the object's radius).
+SUCCESS_ROTATION_DEG = 5.0
+SUCCESS_TRANSLATION_FRACTION = 0.05
+
 # A ground-truth label for a point that is neither matched nor unmatched (two samplings of one
 # surface: near a counterpart, but not one-to-one; logdesc_rt.synthetic's resampled pairs).
 IGNORED = -2

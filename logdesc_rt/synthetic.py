@@ -29,9 +29,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from pykdtree.kdtree import KDTree
+from scipy.spatial.transform import Rotation
 
 from .config import NormalizationConfig
 from .metrics import IGNORED

@@ -46,13 +46,12 @@ if __package__ in (None, ""):  # run as ``python training/evaluate.py``: import 
     sys.path.insert(0, str(_here.parent))
 
 import numpy as np
-
 from pykdtree.kdtree import KDTree
 
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig, VerificationConfig
 from logdesc_rt.errors import InvalidPointCloudError
 from logdesc_rt.matching import Matches, matches_as_array, mutual_matches, sinkhorn_matches
-from logdesc_rt.metrics import matching_metrics, registration_metrics, rotation_error_deg
+from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, registration_metrics, rotation_error_deg
 from logdesc_rt.normalization import PairNormalization
 from logdesc_rt.pose import FsrConfig
 from logdesc_rt.registration import MIN_MATCHES
@@ -89,7 +88,6 @@ __all__ = [
 ]
 
 DEFAULT_EVAL_SEED = 1234
-SUCCESS_ROTATION_DEG = 5.0  # the benchmarks' rotation threshold for a registered pair
 NEAR_MISS_DEG = 30.0
 SYMMETRIC_FIT_RATIO = 0.9
 FAILURE_KINDS = ("no pose", "near miss", "symmetric", "wrong")
@@ -109,7 +107,7 @@ class PairResult:
         target: (M, 3) user-frame target (for the fit of a wrong pose).
         scale: the pair's scale (the larger cloud's radius, user units).
         pred_match: (N,) int64 predicted target index per source point, -1 unmatched.
-        gt_match: (N,) int64 true counterpart, -1 none.
+        gt_match: (N,) int64 true counterpart, -1 none, -2 ignored (resampled pairs).
         match_count: number of mutual matches.
         pose_failed: True when FSR could not run (fewer than 3 usable matches or degenerate
             geometry); the identity was used.

@@ -58,7 +58,7 @@ from tqdm import tqdm
 
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig
 from logdesc_rt.matching import matches_as_array
-from logdesc_rt.metrics import matching_metrics, rotation_error_deg
+from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, rotation_error_deg
 from logdesc_rt.pose import FsrConfig
 from training.config import PRESETS, ModelConfig
 from training.data import (
@@ -432,7 +432,7 @@ def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConf
         result = {
             f"{prefix}rot_median_deg": float(np.median(rot)),
             f"{prefix}rot_mean_deg": float(np.mean(rot)),
-            f"{prefix}rot_under_5deg": float(np.mean(rot < 5.0)),
+            f"{prefix}rot_under_5deg": float(np.mean(rot < SUCCESS_ROTATION_DEG)),
         }
         for name in ("precision", "accuracy", "recall"):
             values = np.array([r[name] for r in rows], dtype=np.float64)
