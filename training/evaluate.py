@@ -33,6 +33,7 @@ The functions (:func:`register_from_log_assignment`, :func:`evaluate_model`,
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -131,10 +132,14 @@ class PairResult:
     def rotation_error_deg(self) -> float:
         return float(rotation_error_deg(self.T_pred[:3, :3], self.T_gt[:3, :3]))
 
+    @functools.cached_property
+    def _target_tree(self) -> KDTree:  # built once: a failure's fit is read for two poses
+        return KDTree(self.target)
+
     def fitness(self, pose: np.ndarray) -> float:
         """Share of the source points within the runtime's inlier distance of the target after
         ``pose`` (the verification's ``fitness``: ``distance_fraction`` x scale)."""
-        distance, _ = KDTree(self.target).query(self.source @ pose[:3, :3].T + pose[:3, 3], k=1)
+        distance, _ = self._target_tree.query(self.source @ pose[:3, :3].T + pose[:3, 3], k=1)
         return float(np.mean(distance < VerificationConfig().distance_fraction * self.scale))
 
     @property

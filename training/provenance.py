@@ -84,42 +84,38 @@ def invocations(records: list[dict]) -> list[dict]:
     """One entry per ``start`` / ``resume`` record: the steps, pairs and training wall time it
     added, its commit, why it ended, and the training arguments it changed (all of them for
     the first; run-local ones such as ``--out`` or ``--max-minutes`` never count)."""
+    # Each invocation's records: its start / resume record, then the progress records up to
+    # and including its stop (later ones, before the next resume, belong to no invocation).
+    segments: list[list[dict]] = []
+    for record in records:
+        if record.get("type") in ("start", "resume"):
+            segments.append([record])
+        elif segments and "step" in record and segments[-1][-1].get("type") != "stop":
+            segments[-1].append(record)
+
     entries: list[dict] = []
     previous_arguments: dict = {}
-    current: dict | None = None
-    for record in records:
-        kind = record.get("type")
-        if kind in ("start", "resume"):
-            if current is not None:
-                current["ended"] = "no stop record (killed)"
-                entries.append(current)
-            arguments = {k: v for k, v in record.get("args", {}).items() if k not in _LOCAL_ARGUMENTS}
-            changed = {k: v for k, v in arguments.items() if previous_arguments.get(k, object()) != v}
-            previous_arguments = arguments
-            current = {
-                "kind": kind,
-                "from_step": record["step"],
-                "to_step": record["step"],
-                "pairs": 0,
-                "wall_time_s": 0.0,
-                "git_commit": record.get("git_commit", "unknown"),
-                "changed_arguments": changed,
-                "_start": record,
-            }
-        elif current is not None and "step" in record:
-            start = current["_start"]
-            current["to_step"] = record["step"]
-            current["pairs"] = record["pairs_seen"] - start["pairs_seen"]
-            current["wall_time_s"] = round(record["wall_time_s"] - start["wall_time_s"], 1)
-            if kind == "stop":
-                current["ended"] = record.get("reason", "stop")
-                entries.append(current)
-                current = None
-    if current is not None:
-        current["ended"] = "still running when the log was read"
-        entries.append(current)
-    for entry in entries:
-        del entry["_start"]
+    for position, segment in enumerate(segments):
+        first, last = segment[0], segment[-1]
+        arguments = {k: v for k, v in first.get("args", {}).items() if k not in _LOCAL_ARGUMENTS}
+        changed = {k: v for k, v in arguments.items() if previous_arguments.get(k, object()) != v}
+        previous_arguments = arguments
+        if last.get("type") == "stop":
+            ended = last.get("reason", "stop")
+        elif position == len(segments) - 1:
+            ended = "still running when the log was read"
+        else:
+            ended = "no stop record (killed)"
+        entries.append({
+            "kind": first["type"],
+            "from_step": first["step"],
+            "to_step": last["step"],
+            "pairs": last["pairs_seen"] - first["pairs_seen"],
+            "wall_time_s": round(last["wall_time_s"] - first["wall_time_s"], 1),
+            "git_commit": first.get("git_commit", "unknown"),
+            "changed_arguments": changed,
+            "ended": ended,
+        })
     return entries
 
 
