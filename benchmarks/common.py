@@ -74,7 +74,8 @@ class BenchmarkPair:
         name: human-readable identity (shape name, scan names).
         source, target: (N, 3) / (M, 3) float64 user-frame clouds.
         T_gt: (4, 4) true pose source -> target.
-        gt_match: (N,) int64 true target index per source point, -1 none; None if unknown.
+        gt_match: (N,) int64 true target index per source point, -1 none, -2 ignored (resampled
+            protocols: neither matched nor clearly without a counterpart); None if unknown.
         scale: the object's radius in user units (successes are judged relative to it).
     """
 

@@ -184,6 +184,29 @@ def test_accuracy_script_end_to_end_on_one_pair(shared_data, tmp_path):
     assert (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines() == lines
 
 
+def test_resampled_benchmark_pairs_keep_their_labels_when_turned_and_run_end_to_end(shared_data, tmp_path):
+    import accuracy_modelnet
+
+    plain, turned = common.modelnet10_test_pairs(["resampled_partial", "resampled_partial_rotated"], 1)
+    assert plain.protocol == "resampled_partial" and turned.protocol == "resampled_partial_rotated"
+    # Labels come from geometry: some points neither match nor clearly lack a counterpart.
+    assert (plain.gt_match == -2).any() and (plain.gt_match >= 0).any() and (plain.gt_match == -1).any()
+    np.testing.assert_array_equal(plain.gt_match, turned.gt_match)
+    # Turning both clouds is rigid: the same shape, only placed elsewhere.
+    for a, b in ((plain.source, turned.source), (plain.target, turned.target)):
+        np.testing.assert_allclose(np.linalg.norm(a[:5, None] - a[None], axis=-1),
+                                   np.linalg.norm(b[:5, None] - b[None], axis=-1), atol=1e-9)
+    assert not np.allclose(plain.source, turned.source)
+
+    code = accuracy_modelnet.main(["--pairs", "1", "--protocols", "resampled_partial", "--methods", "logdesc_fsr",
+                                   "--out", str(tmp_path)])
+    assert code == 0
+    record = json.loads((tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines()[0])
+    assert record["protocol"] == "resampled_partial" and record["match_count"] > 0
+    assert record["precision"] is not None  # scored on labelled points (metrics leave -2 out)
+    assert "no shared points" in (tmp_path / "modelnet10_accuracy.md").read_text()
+
+
 def test_result_cache_reruns_learned_methods_of_another_model(tmp_path):
     path = tmp_path / "pairs.jsonl"
     old = common.ResultCache(path, model_id="old-model")
