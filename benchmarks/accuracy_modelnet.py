@@ -43,6 +43,7 @@ from common import (  # noqa: E402
     markdown_table,
     modelnet10_test_pairs,
     pair_record,
+    project_relative,
     summarize,
     write_report,
 )
@@ -50,6 +51,8 @@ from methods import (  # noqa: E402
     ALL_METHODS,
     OPEN3D_METHODS,
     REFINED_FROM,
+    TUNING_FILE,
+    FpfhParameters,
     MethodResult,
     MethodRunner,
     open3d_available,
@@ -89,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model-dir", type=Path, default=None,
                         help="an exported model folder (export/to_onnx.py) instead of the bundled one; "
                              "use another --out: the per-pair cache is per model")
+    parser.add_argument("--open3d-tuning", type=Path, default=TUNING_FILE,
+                        help="the tune_open3d.py sweep whose chosen Open3D parameters the baselines use; "
+                             "use another --out with another sweep: cached baseline records do not know it")
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
     return parser
 
@@ -148,7 +154,8 @@ def main(argv=None) -> int:
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]
     coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))
-    runner = MethodRunner(coarse, threads=args.threads, model_dir=args.model_dir)
+    runner = MethodRunner(coarse, FpfhParameters.tuned(args.open3d_tuning), threads=args.threads,
+                          model_dir=args.model_dir)
 
     total = args.pairs * len(args.protocols)
     pairs = modelnet10_test_pairs(args.protocols, args.pairs, args.seed)
@@ -185,7 +192,7 @@ def main(argv=None) -> int:
         f"Command: `{command_line()}`",
         f"Machine: {machine_info()}",
         f"Open3D parameters (network units, object radius = 1; chosen on validation pairs by "
-        f"`tune_open3d.py`): {parameters_dict(runner.parameters)}",
+        f"`tune_open3d.py`, `{project_relative(args.open3d_tuning)}`): {parameters_dict(runner.parameters)}",
     ]
     for protocol in args.protocols:
         rows = dict(summary[protocol])
@@ -207,6 +214,7 @@ def main(argv=None) -> int:
         "pairs_per_protocol": args.pairs,
         "seed": args.seed,
         "open3d_parameters": parameters_dict(runner.parameters),
+        "open3d_tuning": str(project_relative(args.open3d_tuning)),
         "summary": summary,
         "published": PUBLISHED,
         "per_pair_file": cache_path.name + ".gz",

@@ -357,14 +357,18 @@ def machine_info() -> dict:
     return info
 
 
+def project_relative(path) -> Path:
+    """``path`` relative to the project root when it lies inside it (how reports name files)."""
+    path = Path(path).resolve()
+    try:
+        return path.relative_to(ROOT)
+    except ValueError:
+        return path
+
+
 def command_line() -> str:
     """The command that ran this script, as typed from the project root."""
-    script = Path(sys.argv[0]).resolve()
-    try:
-        script = script.relative_to(ROOT)
-    except ValueError:
-        pass
-    return " ".join(["python", str(script), *sys.argv[1:]])
+    return " ".join(["python", str(project_relative(sys.argv[0])), *sys.argv[1:]])
 
 
 def write_report(stem: str, markdown: str, payload: dict, out: Path = RESULTS) -> tuple[Path, Path]:

@@ -1,10 +1,11 @@
 """Do two views of one surface agree on its geometry? Shipped (paper) geometry against v3's.
 
-    python benchmarks/geometry_agreement.py [--pairs 100]
+    python benchmarks/geometry_agreement.py [--pairs 100] [--protocols clean noisy partial resampled ...]
 
-For clean, noisy and noisy + partial pairs of held-out *validation* shapes (never the test
-split; these figures chose v3's normals), every source point with a true counterpart in the
-target is compared with it, after undoing the true rotation:
+For clean, noisy and noisy + partial pairs (and, on request, the resampled ones, whose clouds
+share no sample) of held-out *validation* shapes (never the test split; these figures chose
+v3's normals), every source point with a true counterpart in the target is compared with it,
+after undoing the true rotation:
 
 - **normal angle**: the angle between the two unit normals, sign ignored (0-90 degrees), for
   the shipped umbrella normals (area temperature 1e-4), umbrella normals at temperature 1e-2
@@ -34,6 +35,7 @@ from logdesc_rt.config import GeometryConfig  # noqa: E402
 from logdesc_rt.geometry import compute_geometry  # noqa: E402
 from logdesc_rt.geometry.normals import umbrella_normals  # noqa: E402
 from logdesc_rt.normalization import PairNormalization  # noqa: E402
+from logdesc_rt.synthetic import PROTOCOLS  # noqa: E402
 
 SHIPPED = GeometryConfig()
 V3 = GeometryConfig(edge_layout="invariant", normals="pca")
@@ -89,10 +91,12 @@ def pair_measurements(pair) -> dict[str, np.ndarray]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=100, help="validation pairs per protocol")
+    parser.add_argument("--protocols", nargs="+", default=["clean", "noisy", "partial"], choices=PROTOCOLS,
+                        help="pair protocols (logdesc_rt.synthetic); the resampled ones share no sample")
     args = parser.parse_args(argv)
 
     results: dict[str, dict] = {}
-    for protocol in ("clean", "noisy", "partial"):
+    for protocol in args.protocols:
         collected: dict[str, list[np.ndarray]] = {}
         for pair in validation_pairs(protocol, args.pairs):
             for key, values in pair_measurements(pair).items():

@@ -108,10 +108,14 @@ class FpfhParameters:
         return 0.5 * self.voxel
 
     @classmethod
-    def tuned(cls) -> FpfhParameters:
-        """The parameters ``tune_open3d.py`` chose on validation pairs (defaults if absent)."""
-        if TUNING_FILE.exists():
-            chosen = json.loads(TUNING_FILE.read_text())["chosen"]
+    def tuned(cls, tuning_file: Path = TUNING_FILE) -> FpfhParameters:
+        """The parameters ``tune_open3d.py`` chose on validation pairs (defaults if absent).
+
+        ``tuning_file``: another sweep's ``open3d_tuning.json`` (e.g. one run on the resampled
+        protocols, whose sparser clouds want larger radii).
+        """
+        if Path(tuning_file).exists():
+            chosen = json.loads(Path(tuning_file).read_text())["chosen"]
             return cls(**chosen)
         return cls()
 

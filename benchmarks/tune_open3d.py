@@ -10,6 +10,7 @@ the median rotation error. The descriptor-only logdesc methods use the same esti
 parameters as FPFH (same Open3D RANSAC / FGR, only the descriptors differ).
 
     python benchmarks/tune_open3d.py [--pairs 20]
+    python benchmarks/tune_open3d.py --protocols resampled_partial --out benchmarks/results/modelnet10_resampled
 
 Writes benchmarks/results/open3d_tuning.md and .json (``chosen`` is read by methods.py).
 """
@@ -28,6 +29,8 @@ from tqdm import tqdm  # noqa: E402
 
 from common import command_line, machine_info, pair_record, summarize, validation_pairs, write_report  # noqa: E402
 from methods import TUNING_FILE, FpfhParameters, MethodRunner  # noqa: E402
+
+from logdesc_rt.synthetic import PROTOCOLS as SYNTHETIC_PROTOCOLS  # noqa: E402
 
 VOXELS = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2)
 ICP_DISTANCES = (0.05, 0.1, 0.2, 0.3, 0.5)
@@ -53,9 +56,13 @@ def choose(rows: dict[str, dict]) -> FpfhParameters:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=20, help="validation pairs per protocol")
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=SYNTHETIC_PROTOCOLS,
+                        help="validation protocols to tune on (default: the paper's)")
+    parser.add_argument("--out", type=Path, default=TUNING_FILE.parent,
+                        help="folder for open3d_tuning.{md,json}; the default one is what methods.py reads")
     args = parser.parse_args(argv)
 
-    pairs = [pair for protocol in PROTOCOLS for pair in validation_pairs(protocol, args.pairs)]
+    pairs = [pair for protocol in args.protocols for pair in validation_pairs(protocol, args.pairs)]
     rows: dict[str, dict] = {}
     sweeps = [("fpfh", voxel, FpfhParameters(voxel=voxel), ("fpfh_ransac", "fpfh_fgr")) for voxel in VOXELS]
     sweeps += [("icp", distance, FpfhParameters(icp_distance=distance), ("icp_point_to_plane",))
@@ -80,7 +87,7 @@ def main(argv=None) -> int:
     markdown = "\n".join([
         "# Open3D parameters for the baselines, chosen on validation pairs",
         "",
-        f"Pairs: {args.pairs} per protocol ({', '.join(PROTOCOLS)}) from the held-out training shapes "
+        f"Pairs: {args.pairs} per protocol ({', '.join(args.protocols)}) from the held-out training shapes "
         "(never the ModelNet10 test split). Units: network units (object radius = 1).",
         f"Command: `{command_line()}`. Machine: {machine_info()}.",
         "",
@@ -90,9 +97,9 @@ def main(argv=None) -> int:
         "",
         table,
     ])
-    payload = {"chosen": chosen, "pairs_per_protocol": args.pairs, "protocols": PROTOCOLS,
+    payload = {"chosen": chosen, "pairs_per_protocol": args.pairs, "protocols": list(args.protocols),
                "command": command_line(), "machine": machine_info(), "rows": rows}
-    md, js = write_report(TUNING_FILE.stem, markdown, payload, TUNING_FILE.parent)
+    md, js = write_report(TUNING_FILE.stem, markdown, payload, args.out)
     print(markdown)
     print(f"wrote {md} and {js}")
     return 0 if np.isfinite(best_voxel) else 1

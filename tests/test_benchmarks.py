@@ -135,6 +135,17 @@ def test_tuned_open3d_parameters_follow_from_the_recorded_sweep():
     assert tune_open3d.choose(rows).voxel == other["value"]
 
 
+def test_the_resampled_sweep_is_its_own_recorded_choice():
+    """The resampled benchmark's Open3D parameters come from their own sweep (sparser clouds),
+    read through ``FpfhParameters.tuned(file)``; the default file stays what methods.py uses."""
+    import tune_open3d
+
+    sweep = methods.TUNING_FILE.parent / "modelnet10_resampled" / "open3d_tuning.json"
+    recorded = json.loads(sweep.read_text())
+    assert recorded["protocols"] == ["resampled_partial"]
+    assert methods.FpfhParameters.tuned(sweep) == tune_open3d.choose(recorded["rows"])
+
+
 def test_open3d_baselines_run_and_return_rigid_poses(shared_data):
     pytest.importorskip("open3d")
     pair = next(common.modelnet10_test_pairs(["clean"], count=1))
