@@ -1,8 +1,8 @@
 """Accuracy on the ModelNet10 test split: logdesc-rt against its own variants and Open3D.
 
 All 908 test shapes (fixed seed, the pairs of ``training/evaluate.py``), protocols clean,
-noisy and noisy + partial (and, on request, the resampled ones, whose clouds share no sample,
-as real scans do not), methods of ``benchmarks/methods.py``: logdesc-rt with FSR / SVD /
+noisy and noisy + partial (and, on request, the resampled ones, whose two clouds share no
+sample, like real scan pairs), methods of ``benchmarks/methods.py``: logdesc-rt with FSR / SVD /
 RANSAC on its matches, its descriptors alone with Open3D RANSAC / FGR, Open3D FPFH + RANSAC /
 FGR (parameters tuned on validation pairs by ``tune_open3d.py``), and point-to-plane ICP from
 the identity. The paper's published ModelNet40 figures are shown beside ours, labelled.
