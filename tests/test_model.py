@@ -35,7 +35,11 @@ from training.model import (  # noqa: E402
     normal_angle_lookup,
     normal_angle_term_direct,
 )
-from training.sinkhorn import log_domain_optimal_transport, log_optimal_transport  # noqa: E402
+from training.sinkhorn import (  # noqa: E402
+    log_domain_optimal_transport,
+    log_optimal_transport,
+    scaling_optimal_transport,
+)
 
 from .shapes import fibonacci_sphere  # noqa: E402
 
@@ -381,6 +385,27 @@ def test_scaling_sinkhorn_equals_the_log_domain_one_with_its_gradients(strength)
         results.append((out.detach(), leaf.grad, alpha.grad))
     for ours, reference in zip(results[0], results[1]):
         torch.testing.assert_close(ours, reference, atol=1e-8 * max(1.0, strength), rtol=1e-7)
+
+
+def test_cpu_sinkhorn_pair_by_pair_equals_the_whole_batch_with_gradients():
+    """On the CPU the Sinkhorn runs one pair at a time (cache-sized kernels); the batch's
+    values and gradients, the shared dustbin score's included, are those of the whole batch
+    at once (what a GPU runs)."""
+    generator = torch.Generator().manual_seed(3)
+    n, m = 40, 33
+    strengths = torch.tensor([1.0, 20.0, 120.0], dtype=torch.float64)
+    scores = torch.randn(3, n, m, generator=generator, dtype=torch.float64) * 0.2 * strengths[:, None, None]
+    scores[:, torch.arange(25), torch.randperm(m, generator=generator)[:25]] += strengths[:, None]
+    weights = torch.randn(3, n + 1, m + 1, generator=generator, dtype=torch.float64)
+    results = []
+    for sinkhorn in (log_optimal_transport, scaling_optimal_transport):
+        leaf = scores.clone().requires_grad_()
+        alpha = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
+        out = sinkhorn(leaf, alpha, 50)
+        (out * weights).sum().backward()
+        results.append((out.detach(), leaf.grad, alpha.grad))
+    for pair_by_pair, whole_batch in zip(*results):
+        torch.testing.assert_close(pair_by_pair, whole_batch, atol=1e-9, rtol=1e-9)
 
 
 def test_log_optimal_transport_gradient_reaches_dustbin():

@@ -26,6 +26,27 @@ import torch
 def log_optimal_transport(
     scores: torch.Tensor, dustbin_score: torch.Tensor, iterations: int
 ) -> torch.Tensor:
+    """Sinkhorn assignment with a learned dustbin (:func:`scaling_optimal_transport`), one pair
+    at a time on the CPU.
+
+    The iterations are matrix-vector products, bound by memory traffic: one pair's kernel
+    (4 MB at 1024 points) is read 2 x ``iterations`` times forward and again backward, and
+    stays in the CPU's cache only alone. Pair by pair, a batch of 8 x 1024 points runs about
+    4x faster forward and backward than all at once, with the same values (each pair's plan
+    depends on that pair only). On a GPU the whole batch goes at once.
+
+    Args and returns: as :func:`scaling_optimal_transport`.
+    """
+    if scores.device.type != "cpu" or scores.shape[0] <= 1:
+        return scaling_optimal_transport(scores, dustbin_score, iterations)
+    return torch.cat(
+        [scaling_optimal_transport(scores[i : i + 1], dustbin_score, iterations) for i in range(scores.shape[0])]
+    )
+
+
+def scaling_optimal_transport(
+    scores: torch.Tensor, dustbin_score: torch.Tensor, iterations: int
+) -> torch.Tensor:
     """Sinkhorn assignment with a learned dustbin, by scaling iterations on one kernel.
 
     The same plan as :func:`log_domain_optimal_transport` (the algorithm of the module
