@@ -35,7 +35,7 @@ from logdesc_rt.config import GeometryConfig  # noqa: E402
 from logdesc_rt.geometry import compute_geometry  # noqa: E402
 from logdesc_rt.geometry.normals import umbrella_normals  # noqa: E402
 from logdesc_rt.normalization import PairNormalization  # noqa: E402
-from logdesc_rt.synthetic import PROTOCOLS  # noqa: E402
+from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS  # noqa: E402
 
 SHIPPED = GeometryConfig()
 V3 = GeometryConfig(edge_layout="invariant", normals="pca")
@@ -91,7 +91,7 @@ def pair_measurements(pair) -> dict[str, np.ndarray]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=100, help="validation pairs per protocol")
-    parser.add_argument("--protocols", nargs="+", default=["clean", "noisy", "partial"], choices=PROTOCOLS,
+    parser.add_argument("--protocols", nargs="+", default=list(PAPER_PROTOCOLS), choices=PROTOCOLS,
                         help="pair protocols (logdesc_rt.synthetic); the resampled ones share no sample")
     args = parser.parse_args(argv)
 

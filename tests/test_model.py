@@ -367,6 +367,16 @@ def test_log_optimal_transport_marginals_and_reference():
         np.testing.assert_allclose(ours, reference, atol=1e-10)
 
 
+def _sinkhorn_values_and_gradients(sinkhorn, scores: torch.Tensor, weights: torch.Tensor):
+    """(plan, d loss / d scores, d loss / d dustbin score) of ``sinkhorn`` for the loss
+    sum(plan * weights), dustbin score 0.7, 50 iterations (float64)."""
+    leaf = scores.clone().requires_grad_()
+    alpha = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
+    out = sinkhorn(leaf, alpha, 50)
+    (out * weights).sum().backward()
+    return out.detach(), leaf.grad, alpha.grad
+
+
 @pytest.mark.parametrize("strength", [1.0, 20.0, 120.0])
 def test_scaling_sinkhorn_equals_the_log_domain_one_with_its_gradients(strength):
     """Training's scaling-form Sinkhorn gives the log-domain iteration's values and gradients
@@ -376,13 +386,8 @@ def test_scaling_sinkhorn_equals_the_log_domain_one_with_its_gradients(strength)
     scores = torch.randn(2, n, m, generator=generator, dtype=torch.float64) * 0.2 * strength
     scores[:, torch.arange(25), torch.randperm(m, generator=generator)[:25]] += strength
     weights = torch.randn(2, n + 1, m + 1, generator=generator, dtype=torch.float64)
-    results = []
-    for sinkhorn in (log_optimal_transport, log_domain_optimal_transport):
-        leaf = scores.clone().requires_grad_()
-        alpha = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
-        out = sinkhorn(leaf, alpha, 50)
-        (out * weights).sum().backward()
-        results.append((out.detach(), leaf.grad, alpha.grad))
+    results = [_sinkhorn_values_and_gradients(sinkhorn, scores, weights)
+               for sinkhorn in (log_optimal_transport, log_domain_optimal_transport)]
     for ours, reference in zip(results[0], results[1]):
         torch.testing.assert_close(ours, reference, atol=1e-8 * max(1.0, strength), rtol=1e-7)
 
@@ -397,13 +402,8 @@ def test_cpu_sinkhorn_pair_by_pair_equals_the_whole_batch_with_gradients():
     scores = torch.randn(3, n, m, generator=generator, dtype=torch.float64) * 0.2 * strengths[:, None, None]
     scores[:, torch.arange(25), torch.randperm(m, generator=generator)[:25]] += strengths[:, None]
     weights = torch.randn(3, n + 1, m + 1, generator=generator, dtype=torch.float64)
-    results = []
-    for sinkhorn in (log_optimal_transport, scaling_optimal_transport):
-        leaf = scores.clone().requires_grad_()
-        alpha = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
-        out = sinkhorn(leaf, alpha, 50)
-        (out * weights).sum().backward()
-        results.append((out.detach(), leaf.grad, alpha.grad))
+    results = [_sinkhorn_values_and_gradients(sinkhorn, scores, weights)
+               for sinkhorn in (log_optimal_transport, scaling_optimal_transport)]
     for pair_by_pair, whole_batch in zip(*results):
         torch.testing.assert_close(pair_by_pair, whole_batch, atol=1e-9, rtol=1e-9)
 
