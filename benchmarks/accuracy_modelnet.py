@@ -91,10 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--model-dir", type=Path, default=None,
                         help="an exported model folder (export/to_onnx.py) instead of the bundled one; "
-                             "use another --out: the per-pair cache is per model")
+                             "the per-pair cache keeps one model's records (another's are re-run): use another --out to keep both")
     parser.add_argument("--open3d-tuning", type=Path, default=TUNING_FILE,
                         help="the tune_open3d.py sweep whose chosen Open3D parameters the baselines use; "
-                             "use another --out with another sweep: cached baseline records do not know it")
+                             "baseline records of other parameters are re-run: use another --out to keep both")
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
     return parser
 
@@ -150,12 +150,13 @@ def main(argv=None) -> int:
         methods = [m for m in methods if m not in OPEN3D_METHODS]
         print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir))
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]
     coarse = list(dict.fromkeys([m for m in methods if m not in REFINED_FROM] + [REFINED_FROM[m] for m in refined]))
     runner = MethodRunner(coarse, FpfhParameters.tuned(args.open3d_tuning), threads=args.threads,
                           model_dir=args.model_dir)
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
+                        baseline_id=runner.parameters.fingerprint())
 
     total = args.pairs * len(args.protocols)
     pairs = modelnet10_test_pairs(args.protocols, args.pairs, args.seed)

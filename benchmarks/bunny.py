@@ -635,8 +635,9 @@ def main(argv=None) -> int:
         print(f"open3d is not installed (pip install open3d): skipping {skipped}",
               file=sys.stderr)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir))
     runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
+    cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
+                        baseline_id=runner.parameters.fingerprint())
 
     scans = load_scans()
     print(f"measuring the overlaps of {len(scans)} scans ...", file=sys.stderr)

@@ -15,14 +15,16 @@ Two steps, both resumable:
         --manifest, also writes the calibration into that model's manifest ("runtime" ->
         "verification"), where the runtime reads it (a calibration belongs to one model)
 
-Pair groups (all "partial" protocol: noise sigma 0.01, independent crops, both clouds turned
-by one random rotation so that no canonical pose helps):
+Pair groups (the synthetic ones from validation shapes, noise sigma 0.01, independent crops,
+both clouds turned by one random rotation so that no canonical pose helps):
 
 - ``val_in_range``: the training motion (Euler angles in [0, 45] deg per axis, translation
   in [-0.5, 0.5]); the model mostly succeeds;
 - ``val_any_rotation``: the same pairs with the target turned further about its centroid by a
   uniformly random rotation: relative rotations of any size, where the model mostly fails;
 - ``val_small_overlap``: the training motion with harder crops (512 of 1024 points kept);
+- ``val_resampled_partial``: the training motion, "resampled_partial" protocol: each cloud
+  its own half of the shape's samples (no point has an exact twin, as in real scan pairs);
 - ``bunny_unbenchmarked``: real scan pairs with overlap < 0.3 (full scans, metres);
 - ``bunny_init_near_truth`` (fit only): those pairs with an initial guess near the truth
   among the candidates (3 deg, 1 % of the radius off), for right poses on real scans.
@@ -51,12 +53,16 @@ from logdesc_rt.synthetic import make_pair  # noqa: E402
 
 SEED = 20261130
 CACHE = ROOT / "runs" / "success_calibration"
-GROUPS = ("val_in_range", "val_any_rotation", "val_small_overlap", "bunny_unbenchmarked")
+# Appended, never reordered: a group's number seeds its pairs.
+GROUPS = ("val_in_range", "val_any_rotation", "val_small_overlap", "bunny_unbenchmarked", "val_resampled_partial")
+SYNTHETIC_PROTOCOL = {"val_resampled_partial": "resampled_partial"}  # the others: "partial"
+MODEL_RECORD = "model.json"  # in the cache: which model the cached matches are from
 # Built from the cached bunny_unbenchmarked matches at fit time (no network run): the same
 # pairs with one more candidate, an initial guess 3 deg / 1 % of the radius from the truth.
 # The network fails on every unbenchmarked pair, so without it the calibration would see no
 # right pose on a real scan.
 INIT_GROUP = "bunny_init_near_truth"
+INIT_GROUP_NUMBER = 4  # seeds its candidates; the number of groups when it was added, kept fixed
 INIT_ROTATION_DEG = 3.0
 INIT_TRANSLATION_FRACTION = 0.01
 
@@ -79,7 +85,8 @@ def synthetic_pairs(group: str, count: int):
     for index in range(min(count, len(shapes.val))):
         rng = np.random.default_rng([SEED, number, index])
         partial = 512 if group == "val_small_overlap" else None
-        pair = make_pair(shapes.val[index], "partial", rng, partial_points=partial, any_orientation=True)
+        protocol = SYNTHETIC_PROTOCOL.get(group, "partial")
+        pair = make_pair(shapes.val[index], protocol, rng, partial_points=partial, any_orientation=True)
         source, target, truth = pair.source, pair.target, pair.T_gt
         if group == "val_any_rotation":
             target, truth = _turn_target(target, truth, rng)
@@ -99,8 +106,21 @@ def bunny_pairs():
                relative_pose(source, target))
 
 
+def model_record(model_dir: Path | None) -> dict[str, str]:
+    """The model a cache's matches come from: its name and ONNX fingerprint."""
+    from common import bundled_model_id, model_description
+
+    return {"id": bundled_model_id(model_dir), "description": model_description(model_dir)}
+
+
 def collect(groups: list[str], count: int, threads: int, model_dir: Path | None = None, cache: Path = CACHE) -> None:
     registrar = Registrar(model_dir, threads=threads)
+    record = model_record(model_dir)
+    record_path = cache / MODEL_RECORD
+    if record_path.exists() and json.loads(record_path.read_text())["id"] != record["id"]:
+        raise SystemExit(f"{cache} holds another model's matches ({record_path}); use another --cache")
+    cache.mkdir(parents=True, exist_ok=True)
+    record_path.write_text(json.dumps(record, indent=1) + "\n")
     for group in groups:
         (cache / group).mkdir(parents=True, exist_ok=True)
         pairs = bunny_pairs() if group == "bunny_unbenchmarked" else synthetic_pairs(group, count)
@@ -199,7 +219,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
                                           top_k_fraction=config.top_k_fraction)
     ]
     if with_init:
-        rng = np.random.default_rng([SEED, len(GROUPS), int.from_bytes(path.stem.encode(), "little") % 2**32])
+        rng = np.random.default_rng([SEED, INIT_GROUP_NUMBER, int.from_bytes(path.stem.encode(), "little") % 2**32])
         candidates.append(("init", _near_truth(data["truth"], float(data["scale"]), rng)))
     source_index, target_index = data["source_index"], data["target_index"]
     verifier = PoseVerifier(
@@ -278,10 +298,11 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         "",
         "`python benchmarks/calibrate_success.py collect && python benchmarks/calibrate_success.py fit`",
         "",
-        "Bundled model small-h100-v2. Pairs: the training run's held-out *validation* shapes",
+        f"Model: {payload['model']['description']}. Pairs: the training run's held-out *validation* shapes",
         "(5 % of ModelNet10 train and of the ModelNet40 train subset; never ModelNet10's test split),",
-        "\"partial\" protocol, both clouds turned by one random rotation; and the Stanford Bunny scan",
-        "pairs that `benchmarks/bunny.py` does **not** benchmark (overlap < 0.3). Groups",
+        "\"partial\" protocol (\"resampled_partial\" for val_resampled_partial), both clouds turned by one",
+        "random rotation; and the Stanford Bunny scan pairs that `benchmarks/bunny.py` does **not**",
+        "benchmark (overlap < 0.3). Groups",
         "(`benchmarks/calibrate_success.py` docstring): " + ", ".join(f"{g} ({n} pairs)" for g, n in pairs_per_group.items()) + ".",
         "",
         "Right = rotation error < 5 deg and translation error < 5 % of the larger radius.",
@@ -375,6 +396,8 @@ def fit(groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_
         summary["unrefined"][group] = flag_quality(unrefined_claimed[member], unrefined_right[member])
     payload = {
         "what": "success-flag calibration on validation pairs (benchmarks/calibrate_success.py)",
+        "model": (json.loads((cache / MODEL_RECORD).read_text()) if (cache / MODEL_RECORD).exists()
+                  else {"id": None, "description": "not recorded (a cache collected before model.json)"}),
         "groups": groups,
         "features": list(FEATURES),
         "verification_config": fitted.to_dict(),

@@ -172,14 +172,17 @@ def is_learned_method(method: str) -> bool:
 
 
 def bundled_model_id(model_dir: Path | None = None) -> str:
-    """A short fingerprint of a model directory's ONNX files (default: the bundled model).
+    """A short fingerprint of what a model directory makes the runtime do (default: the
+    bundled model).
 
-    Derived from the SHA-256 checksums in its manifest, so retraining or re-exporting the
-    model changes it.
+    Derived from its manifest without the descriptive parts (provenance, training config):
+    the ONNX files' SHA-256 checksums and every setting the runtime reads from it (geometry,
+    normalization, matching, and the "runtime" section, e.g. the success-flag calibration).
+    So retraining, re-exporting or recalibrating the model changes it.
     """
     manifest = read_manifest(Path(model_dir) if model_dir is not None else bundled_model_dir())
-    digest = sha256("".join(f"{name}:{manifest.checksums[name]};" for name in sorted(manifest.checksums)).encode())
-    return digest.hexdigest()[:12]
+    used = {k: v for k, v in manifest.to_dict().items() if k not in ("provenance", "model_config")}
+    return sha256(json.dumps(used, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def model_description(model_dir: Path | None = None) -> str:
@@ -199,14 +202,17 @@ class ResultCache:
     recomputing and new records append to the plain file.
 
     With ``model_id`` (:func:`bundled_model_id`), records of learned methods are stamped with
-    it, and on loading those of another model (or of none) are dropped from the file: they are
-    re-run, while the classical methods' records stay.
+    it ("model"), and on loading those of another model (or of none) are dropped from the
+    file: they are re-run, while the classical methods' records stay. ``baseline_id``
+    (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline").
     """
 
-    def __init__(self, path: Path, fresh: bool = False, model_id: str | None = None) -> None:
+    def __init__(self, path: Path, fresh: bool = False, model_id: str | None = None,
+                 baseline_id: str | None = None) -> None:
         self.path = Path(path)
         self.model_id = model_id
-        self.stale = 0  # learned-method records of another model dropped on loading
+        self.baseline_id = baseline_id
+        self.stale = 0  # records of another model or other baseline parameters, dropped on loading
         self.records: dict[tuple[str, int, str], dict] = {}
         packed = self.path.with_name(self.path.name + ".gz")
         if fresh:  # start over: forget the plain file and do not unpack the kept copy
@@ -224,9 +230,13 @@ class ResultCache:
             if self.stale:  # rewrite without them, so that the kept copy holds one model's results
                 self.path.write_text("".join(json.dumps(r) + "\n" for r in self.records.values()))
 
+    def _stamp(self, method: str) -> tuple[str, str | None]:
+        """The field a method's records are stamped with, and the value this cache wants."""
+        return ("model", self.model_id) if is_learned_method(method) else ("baseline", self.baseline_id)
+
     def _is_stale(self, record: dict) -> bool:
-        return (self.model_id is not None and is_learned_method(record["method"])
-                and record.get("model") != self.model_id)
+        field, wanted = self._stamp(record["method"])
+        return wanted is not None and record.get(field) != wanted
 
     def has(self, protocol: str, index: int, methods: Iterable[str]) -> bool:
         return all((protocol, index, method) in self.records for method in methods)
@@ -235,8 +245,9 @@ class ResultCache:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.path.open("a") as handle:
             for record in records:
-                if self.model_id is not None and is_learned_method(record["method"]):
-                    record = {**record, "model": self.model_id}
+                field, wanted = self._stamp(record["method"])
+                if wanted is not None:
+                    record = {**record, field: wanted}
                 self.records[(record["protocol"], record["index"], record["method"])] = record
                 handle.write(json.dumps(record) + "\n")
 

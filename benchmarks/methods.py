@@ -43,6 +43,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass
+from hashlib import sha256
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +107,11 @@ class FpfhParameters:
     @property
     def fgr_distance(self) -> float:
         return 0.5 * self.voxel
+
+    def fingerprint(self) -> str:
+        """A short digest of these parameters: result caches stamp the classical methods'
+        records with it, so that records computed with other parameters are re-run."""
+        return sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
 
     @classmethod
     def tuned(cls, tuning_file: Path = TUNING_FILE) -> FpfhParameters:

@@ -233,6 +233,38 @@ def test_result_cache_reruns_learned_methods_of_another_model(tmp_path):
     assert common.ResultCache(path).records.keys() == {("p", 3, "fpfh_fgr")}
 
 
+def test_result_cache_reruns_baselines_of_other_parameters(tmp_path):
+    """Classical records carry the Open3D parameters' fingerprint, learned ones do not."""
+    path = tmp_path / "pairs.jsonl"
+    default, wider = methods.FpfhParameters(), methods.FpfhParameters(voxel=0.13)
+    assert default.fingerprint() == methods.FpfhParameters().fingerprint() != wider.fingerprint()
+    old = common.ResultCache(path, model_id="m", baseline_id=default.fingerprint())
+    old.add([{**_record(1.0, 0.0, index=3), "method": "logdesc_fsr"},
+             {**_record(2.0, 0.0, index=3), "method": "fpfh_fgr"}])
+    assert "baseline" not in old.records[("p", 3, "logdesc_fsr")]
+    new = common.ResultCache(path, model_id="m", baseline_id=wider.fingerprint())
+    assert new.stale == 1 and new.has("p", 3, ["logdesc_fsr"]) and not new.has("p", 3, ["fpfh_fgr"])
+
+
+def test_the_model_id_changes_with_the_calibration_not_with_the_provenance(tmp_path):
+    """A recalibrated flag changes register()'s results, so cached learned records must go."""
+    import shutil
+
+    from logdesc_rt.network import bundled_model_dir
+
+    model = tmp_path / "model"
+    shutil.copytree(bundled_model_dir(), model)
+    bundled = common.bundled_model_id()
+    assert common.bundled_model_id(model) == bundled
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["provenance"]["note"] = "described again"
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model) == bundled
+    manifest["runtime"].setdefault("verification", {})["success_threshold"] = 0.77
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model) != bundled
+
+
 def test_bundled_model_id_follows_the_onnx_files(tmp_path):
     import shutil
 

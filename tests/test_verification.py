@@ -231,3 +231,41 @@ def test_a_fitted_calibration_written_into_a_manifest_is_the_models_flag(tmp_pat
     config = Registrar(model).config
     assert config.verification == fitted
     assert config.fsr.iterations == 7  # the rest of the manifest's runtime section is kept
+
+
+def _calibrate_success():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import calibrate_success
+
+    return calibrate_success
+
+
+def test_the_calibrations_resampled_group_is_new_pairs_and_leaves_the_others_seeds(shared_data):
+    """A group's number seeds its pairs: the resampled group is appended, so the four older
+    groups (and the near-truth candidates) keep their pairs, and its clouds are resampled ones."""
+    calibrate_success = _calibrate_success()
+    groups = calibrate_success.GROUPS
+    assert groups[:4] == ("val_in_range", "val_any_rotation", "val_small_overlap", "bunny_unbenchmarked")
+    assert calibrate_success.INIT_GROUP_NUMBER == 4
+    (_, partial_source, _, _), = calibrate_success.synthetic_pairs("val_in_range", 1)
+    (name, source, target, truth), = calibrate_success.synthetic_pairs("val_resampled_partial", 1)
+    assert name == "val_resampled_partial/0000"
+    # Half the shape's samples per cloud, then the crop: fewer points than the paper's 768.
+    assert len(source) < len(partial_source) == 768
+    # The truth holds: the moved source lies on the target's surface (noise 0.01, clipped 0.05),
+    # though no source point is a target point.
+    moved = source @ truth[:3, :3].T + truth[:3, 3]
+    distance = np.linalg.norm(moved[:, None, :] - target[None, :, :], axis=2).min(axis=1)
+    assert np.median(distance) < 0.1 and distance.min() > 1e-6
+
+
+def test_collect_refuses_a_cache_of_another_model(tmp_path):
+    """The matches of two models never mix in one calibration cache."""
+    calibrate_success = _calibrate_success()
+    (tmp_path / calibrate_success.MODEL_RECORD).write_text(json.dumps({"id": "another", "description": "x"}))
+    with pytest.raises(SystemExit, match="another model"):
+        calibrate_success.collect(["val_in_range"], 1, 1, cache=tmp_path)
+    assert not (tmp_path / "val_in_range").exists()
