@@ -286,3 +286,28 @@ def test_provenance_lists_each_invocation_with_what_it_changed():
     assert runs[1]["changed_arguments"] == {} and runs[2]["changed_arguments"] == {"lr": 5e-4}
     assert runs[0]["ended"] == "signal SIGINT" and "killed" in runs[1]["ended"]
     assert "still running" in runs[2]["ended"]
+
+
+def test_learning_by_pairs_counts_pairs_from_where_each_run_began(tmp_path):
+    """Bins start at the pairs seen at ``since_step``; earlier steps are left out."""
+    from training.learning_by_pairs import main, nll_by_pairs
+
+    def train(step, pairs, protocol, nll):
+        return {"type": "train", "step": step, "pairs_seen": pairs, "protocol": protocol, "nll": nll}
+
+    records = [{"type": "start"}, train(10, 320, "partial", 9.0), train(20, 640, "partial", 5.0),
+               train(30, 960, "partial", 3.0), train(40, 1280, "noisy", 1.0), train(50, 1600, "partial", 2.0)]
+    bins = nll_by_pairs(records, since_step=20, bin_pairs=500)
+    # Pairs since step 20 (640 seen): 320 and 960 -> bins 0 and 500; step 10 and 20 left out.
+    assert bins == {"partial": {0: (3.0, 1), 500: (2.0, 1)}, "noisy": {500: (1.0, 1)}}
+    with pytest.raises(ValueError, match="after step 50"):
+        nll_by_pairs(records, since_step=50, bin_pairs=500)
+    log = tmp_path / "log.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    out = tmp_path / "table.md"
+    assert main([str(log), str(log), "--labels", "a", "b", "--since-step", "0", "20", "--bin", "500",
+                 "--out", str(out)]) == 0
+    table = out.read_text()
+    # Run a from step 0: 320 -> bin 0; 640 and 960 -> bin 500 (mean of 5 and 3); 1600 -> 1500.
+    assert "| 0-500 | 9.00 (1) | 3.00 (1) |" in table and "| 500-1,000 | 4.00 (2) | 2.00 (1) |" in table
+    assert "| 1,500-2,000 | 2.00 (1) | - |" in table
