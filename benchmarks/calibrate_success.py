@@ -67,15 +67,6 @@ INIT_ROTATION_DEG = 3.0
 INIT_TRANSLATION_FRACTION = 0.01
 
 
-def _turn_target(target: np.ndarray, truth: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Turn the target about its centroid by a uniformly random rotation; the new truth."""
-    centre = target.mean(axis=0)
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.random(random_state=rng).as_matrix()
-    turn[:3, 3] = centre - turn[:3, :3] @ centre
-    return target @ turn[:3, :3].T + turn[:3, 3], turn @ truth
-
-
 def synthetic_pairs(group: str, count: int):
     """Yield (name, source, target, truth) for the validation-shape groups."""
     from training.data import load_training_sources, split_training_shapes
@@ -86,11 +77,9 @@ def synthetic_pairs(group: str, count: int):
         rng = np.random.default_rng([SEED, number, index])
         partial = 512 if group == "val_small_overlap" else None
         protocol = SYNTHETIC_PROTOCOL.get(group, "partial")
-        pair = make_pair(shapes.val[index], protocol, rng, partial_points=partial, any_orientation=True)
-        source, target, truth = pair.source, pair.target, pair.T_gt
-        if group == "val_any_rotation":
-            target, truth = _turn_target(target, truth, rng)
-        yield f"{group}/{index:04d}", source, target, truth
+        pair = make_pair(shapes.val[index], protocol, rng, partial_points=partial, any_orientation=True,
+                         any_relative_rotation=group == "val_any_rotation")
+        yield f"{group}/{index:04d}", pair.source, pair.target, pair.T_gt
 
 
 def bunny_pairs():

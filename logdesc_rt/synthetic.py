@@ -76,7 +76,8 @@ class Pair:
         source_network: (N, 3) float64 source in network units.
         target_network: (M, 3) float64 target in network units.
         T_gt_network: (4, 4) float64 pose between the network-frame clouds.
-        euler_zyx_deg: (3,) float64 the drawn angles (z, y, x), degrees.
+        euler_zyx_deg: (3,) float64 the drawn angles (z, y, x), degrees (the paper's motion:
+            without ``make_pair``'s ``any_relative_rotation`` turn).
     """
 
     protocol: str
@@ -151,14 +152,16 @@ def make_pair(
     partial_points: int | None = None,
     normalization_config: NormalizationConfig = NormalizationConfig(),
     any_orientation: bool = False,
+    any_relative_rotation: bool = False,
 ) -> Pair:
     """Build one registration pair from a shape (PRNet / LoGDesc protocol).
 
     Draw order (fixed, so that one seed gives the same motion under every protocol): the three
     angles, the translation, the optional point subset, the split into halves (resampled
     protocols only), the two permutations, the noise of the source, the noise of the target,
-    the source crop, the target crop, and last the optional whole-pair rotation (so a seed
-    gives the same pair with or without it, only turned).
+    the source crop, the target crop, the optional whole-pair rotation, and last the optional
+    turn of the target alone (so a seed gives the same pair with or without either, only
+    turned).
 
     Args:
         shape_points: (P, 3) points of one shape, P >= 1024 (or >= ``points_per_cloud``).
@@ -178,6 +181,10 @@ def make_pair(
             paper's protocol leaves the source in the dataset's canonical pose, which a
             network can learn to rely on; users' scans arrive in any frame. The relative
             motion keeps its size; its matrix becomes G T G^T.
+        any_relative_rotation: then turn the target alone about its centroid by a uniformly
+            random rotation, so the relative rotation is of any size, as between scans taken
+            from anywhere (the paper's motion stays at most 45 degrees per axis). Labels are
+            unchanged; ``euler_zyx_deg`` still gives the drawn angles, before this turn.
 
     Returns:
         :class:`Pair`. Clean and noisy pairs have N = M = n points, partial ones
@@ -248,6 +255,13 @@ def make_pair(
         turn[:3, :3] = Rotation.random(random_state=rng).as_matrix()
         source, target = source @ turn[:3, :3].T, target @ turn[:3, :3].T
         pose = turn @ pose @ turn.T
+    if any_relative_rotation:
+        relative_turn = np.eye(4)
+        relative_turn[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        centre = target.mean(axis=0)
+        relative_turn[:3, 3] = centre - relative_turn[:3, :3] @ centre
+        target = target @ relative_turn[:3, :3].T + relative_turn[:3, 3]
+        pose = relative_turn @ pose
     normalization = PairNormalization.fit(source, target, normalization_config)
     return Pair(
         protocol=protocol,

@@ -161,6 +161,17 @@ def test_evaluate_on_the_checkpoints_validation_split(trained, tmp_path):
     assert "| noisy |" in result.stdout
     saved = json.loads((tmp_path / "val.json").read_text())
     assert saved["meta"]["split"] == "val" and saved["metrics"]["noisy"]["pairs"] == 2
+    assert saved["meta"]["any_relative_rotation"] is False
+    # The same validation pairs with the target turned alone: the CLI reaches make_pair's turn.
+    turned = validation_dataset(checkpoint, DATA_ROOT, any_orientation=True, any_relative_rotation=True)
+    plain = validation_dataset(checkpoint, DATA_ROOT, any_orientation=True)
+    key = (0, 0, "noisy", 1024)
+    np.testing.assert_array_equal(turned[key]["source_user"], plain[key]["source_user"])
+    assert not np.allclose(turned[key]["T_gt_user"], plain[key]["T_gt_user"])
+    _run([sys.executable, "-m", "training.evaluate", str(trained / "last.pt"), "--split", "val",
+          "--protocols", "noisy", "--pairs", "1", "--workers", "0", "--no-progress", "--any-orientation",
+          "--any-relative-rotation", "--data-root", str(DATA_ROOT), "--out", str(report)])
+    assert json.loads((tmp_path / "val.json").read_text())["meta"]["any_relative_rotation"] is True
 
 
 def test_plot_marks_where_a_resumed_run_changed_its_pairs(tmp_path):

@@ -377,7 +377,9 @@ class PairDataset(_TorchDataset):
 
     Geometry that fails on a degenerate draw (very rare) is retried with
     ``default_rng([seed, e, i, attempt])``. With ``any_orientation`` every pair has both
-    clouds turned by a random rotation (see :func:`logdesc_rt.synthetic.make_pair`).
+    clouds turned by a random rotation, and with ``any_relative_rotation`` the target is then
+    turned alone, so relative rotations are of any size (see
+    :func:`logdesc_rt.synthetic.make_pair`).
     """
 
     def __init__(
@@ -389,6 +391,7 @@ class PairDataset(_TorchDataset):
         name: str = "train",
         any_orientation: bool = False,
         geometry_on_device: bool = False,
+        any_relative_rotation: bool = False,
     ) -> None:
         shapes = np.asarray(shapes, dtype=np.float32)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < SOURCE_POINTS:
@@ -399,6 +402,7 @@ class PairDataset(_TorchDataset):
         self.normalization_config = normalization_config
         self.name = name
         self.any_orientation = bool(any_orientation)
+        self.any_relative_rotation = bool(any_relative_rotation)
         # True: samples carry points only; training computes the geometry for the whole batch
         # on its device (training/geometry_torch.py), where workers could not keep a GPU fed.
         self.geometry_on_device = bool(geometry_on_device)
@@ -416,6 +420,7 @@ class PairDataset(_TorchDataset):
             points_per_cloud=key.points_per_cloud,
             normalization_config=self.normalization_config,
             any_orientation=self.any_orientation,
+            any_relative_rotation=self.any_relative_rotation,
         )
 
     def __getitem__(self, key) -> dict:

@@ -218,16 +218,18 @@ def modelnet10_test_dataset(
     geometry_config: GeometryConfig = GeometryConfig(),
     normalization_config: NormalizationConfig = NormalizationConfig(),
     any_orientation: bool = False,
+    any_relative_rotation: bool = False,
 ) -> PairDataset:
     """ModelNet10's test shapes as a :class:`PairDataset` (the only reader of the test split).
 
     ``any_orientation`` turns both clouds of every pair by a random rotation (the same pairs
-    otherwise; ``benchmarks/`` calls these protocols ``<protocol>_rotated``).
+    otherwise; ``benchmarks/`` calls these protocols ``<protocol>_rotated``);
+    ``any_relative_rotation`` then turns the target alone (relative rotations of any size).
     """
     split = load_modelnet(Path(data_root) / MODELNET10_FOLDER, "test")
     return PairDataset(
         split.points[:, :SOURCE_POINTS], seed, geometry_config, normalization_config, name="test",
-        any_orientation=any_orientation,
+        any_orientation=any_orientation, any_relative_rotation=any_relative_rotation,
     )
 
 
@@ -238,6 +240,7 @@ def validation_dataset(
     geometry_config: GeometryConfig = GeometryConfig(),
     normalization_config: NormalizationConfig = NormalizationConfig(),
     any_orientation: bool = False,
+    any_relative_rotation: bool = False,
 ) -> PairDataset:
     """The checkpoint's held-out validation shapes as a :class:`PairDataset`.
 
@@ -250,7 +253,8 @@ def validation_dataset(
         load_training_sources(data_root), float(train_args.get("val_fraction", 0.05)), int(train_args.get("seed", 0))
     )
     return PairDataset(
-        shapes.val, seed, geometry_config, normalization_config, name="val", any_orientation=any_orientation
+        shapes.val, seed, geometry_config, normalization_config, name="val", any_orientation=any_orientation,
+        any_relative_rotation=any_relative_rotation,
     )
 
 
@@ -447,6 +451,7 @@ def evaluate_checkpoint(
     progress: bool = True,
     any_orientation: bool = False,
     split: str = "test",
+    any_relative_rotation: bool = False,
 ) -> tuple[dict, list[PairResult], dict]:
     """Load a checkpoint, evaluate it on ModelNet10 test pairs (or, with ``split="val"``, on its
     validation shapes); returns (summary, results, meta)."""
@@ -457,10 +462,12 @@ def evaluate_checkpoint(
     geometry_config, normalization_config = configs_from_checkpoint(checkpoint)
     if split == "val":
         dataset = validation_dataset(
-            checkpoint, data_root, seed, geometry_config, normalization_config, any_orientation
+            checkpoint, data_root, seed, geometry_config, normalization_config, any_orientation,
+            any_relative_rotation=any_relative_rotation,
         )
     else:
-        dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation)
+        dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation,
+                                          any_relative_rotation=any_relative_rotation)
     keys = evaluation_keys(len(dataset), protocols, pairs)
     start = time.perf_counter()
     results = evaluate_model(
@@ -475,6 +482,7 @@ def evaluate_checkpoint(
         "git_commit": checkpoint.get("git_commit", "unknown"),
         "seed": seed,
         "any_orientation": any_orientation,
+        "any_relative_rotation": any_relative_rotation,
         "pairs_per_protocol": len(keys) // max(1, len(protocols)),
         "sinkhorn_iterations": int(sinkhorn_iterations or model.config.sinkhorn_iterations),
         "match_threshold": match_threshold,
@@ -513,6 +521,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--any-orientation", action="store_true",
                         help="turn both clouds of every pair by a random rotation (same pairs otherwise)")
+    parser.add_argument("--any-relative-rotation", action="store_true",
+                        help="then turn the target alone by a random rotation: relative rotations of any "
+                             "size, as between scans taken from anywhere (the paper's are <= 45 deg per axis)")
     return parser
 
 
@@ -534,6 +545,7 @@ def main(argv=None) -> int:
         seed=args.seed, device=device, batch_size=args.batch_size, workers=workers, amp=args.amp,
         sinkhorn_iterations=args.sinkhorn_iterations, match_threshold=args.match_threshold,
         progress=not args.no_progress, any_orientation=args.any_orientation, split=args.split,
+        any_relative_rotation=args.any_relative_rotation,
     )
     markdown = format_markdown(summary, meta)
     print(markdown)
