@@ -31,6 +31,7 @@ from common import (  # noqa: E402
     DEFAULT_SEED,
     PUBLISHED,
     RESULTS,
+    ANY_RELATIVE_SUFFIX,
     ROTATED_SUFFIX,
     SUCCESS_ROTATION_DEG,
     SUCCESS_TRANSLATION_FRACTION,
@@ -66,6 +67,7 @@ PROTOCOLS = ("clean", "noisy", "partial")
 # other cloud, as in real scan pairs (logdesc_rt.synthetic; correspondences by geometry).
 RESAMPLED = ("resampled", "resampled_partial")
 ROTATED = tuple(f"{protocol}{ROTATED_SUFFIX}" for protocol in PROTOCOLS + RESAMPLED)
+ANY_RELATIVE = tuple(f"{protocol}{ANY_RELATIVE_SUFFIX}" for protocol in PROTOCOLS + RESAMPLED)
 PROTOCOL_TITLES = {
     "clean": "clean",
     "noisy": "noisy (full overlap)",
@@ -76,15 +78,18 @@ PROTOCOL_TITLES = {
 }
 PROTOCOL_TITLES.update({f"{p}{ROTATED_SUFFIX}": f"{PROTOCOL_TITLES[p]}; both clouds turned by a random rotation "
                         "(beyond the paper)" for p in PROTOCOLS + RESAMPLED})
+PROTOCOL_TITLES.update({f"{p}{ANY_RELATIVE_SUFFIX}": f"{PROTOCOL_TITLES[p]}; turned, then the target turned alone: "
+                        "relative rotations of any size (beyond the paper)" for p in PROTOCOLS + RESAMPLED})
 STEM = "modelnet10_accuracy"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=908, help="test shapes per protocol (all: 908)")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS + RESAMPLED + ROTATED,
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS + RESAMPLED + ROTATED + ANY_RELATIVE,
                         help="the paper's protocols, or the resampled ones (no point shared by the two clouds); "
-                             "'<protocol>_rotated' turns both clouds by a random rotation")
+                             "'<protocol>_rotated' turns both clouds by a random rotation, "
+                             "'<protocol>_any_relative' then the target alone (relative rotations of any size)")
     parser.add_argument("--methods", nargs="+", default=list(ALL_METHODS), choices=ALL_METHODS)
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")

@@ -102,6 +102,7 @@ def _read_h5(folder: Path, split: str) -> tuple[np.ndarray, list[str]]:
 
 
 ROTATED_SUFFIX = "_rotated"
+ANY_RELATIVE_SUFFIX = "_any_relative"
 
 
 def modelnet10_test_pairs(
@@ -112,15 +113,19 @@ def modelnet10_test_pairs(
     A protocol with the suffix ``"_rotated"`` (e.g. ``"partial_rotated"``) is the same pair
     with both clouds turned by one uniformly random rotation (``make_pair(...,
     any_orientation=True)``): the paper's protocol keeps the source in the dataset's canonical
-    pose, users' scans come in any frame.
+    pose, users' scans come in any frame. The suffix ``"_any_relative"`` turns the target of
+    that pair once more, alone (``any_relative_rotation=True``): relative rotations of any
+    size, where the paper's are at most 45 degrees per axis.
     """
     shapes, names = _read_h5(Path(data_root) / "modelnet10_hdf5_1024", "test")
     count = len(shapes) if count is None else min(count, len(shapes))
     for protocol in protocols:
-        base = protocol.removesuffix(ROTATED_SUFFIX)
-        turned = protocol.endswith(ROTATED_SUFFIX)
+        apart = protocol.endswith(ANY_RELATIVE_SUFFIX)
+        turned = apart or protocol.endswith(ROTATED_SUFFIX)
+        base = protocol.removesuffix(ANY_RELATIVE_SUFFIX).removesuffix(ROTATED_SUFFIX)
         for index in range(count):
-            pair = make_pair(shapes[index], base, np.random.default_rng([seed, 0, index]), any_orientation=turned)
+            pair = make_pair(shapes[index], base, np.random.default_rng([seed, 0, index]), any_orientation=turned,
+                             any_relative_rotation=apart)
             yield _from_synthetic(pair, protocol, index, names[index])
 
 

@@ -218,6 +218,20 @@ def test_resampled_benchmark_pairs_keep_their_labels_when_turned_and_run_end_to_
     assert "no shared points" in (tmp_path / "modelnet10_accuracy.md").read_text()
 
 
+def test_any_relative_benchmark_pairs_turn_the_rotated_pairs_target_alone(shared_data):
+    turned, apart = common.modelnet10_test_pairs(["partial_rotated", "partial_any_relative"], 1)
+    assert apart.protocol == "partial_any_relative"
+    np.testing.assert_array_equal(turned.source, apart.source)
+    np.testing.assert_array_equal(turned.gt_match, apart.gt_match)
+    # The target is the rotated pair's, turned rigidly about its centroid; the truth follows it.
+    np.testing.assert_allclose(np.linalg.norm(turned.target[:5, None] - turned.target[None], axis=-1),
+                               np.linalg.norm(apart.target[:5, None] - apart.target[None], axis=-1), atol=1e-9)
+    assert not np.allclose(turned.target, apart.target)
+    matched = apart.gt_match >= 0
+    moved = apart.source[matched] @ apart.T_gt[:3, :3].T + apart.T_gt[:3, 3]
+    assert np.abs(moved - apart.target[apart.gt_match[matched]]).max() < 0.2  # noise only
+
+
 def test_result_cache_reruns_learned_methods_of_another_model(tmp_path):
     path = tmp_path / "pairs.jsonl"
     old = common.ResultCache(path, model_id="old-model")
