@@ -96,10 +96,11 @@ def bunny_pairs():
 
 
 def model_record(model_dir: Path | None) -> dict[str, str]:
-    """The model a cache's matches come from: its name and ONNX fingerprint."""
+    """The model a cache's matches come from: its description and the fingerprint of what
+    makes its matches (calibration left out, so ``fit --manifest`` keeps the cache usable)."""
     from common import bundled_model_id, model_description
 
-    return {"id": bundled_model_id(model_dir), "description": model_description(model_dir)}
+    return {"id": bundled_model_id(model_dir, without_calibration=True), "description": model_description(model_dir)}
 
 
 def collect(groups: list[str], count: int, threads: int, model_dir: Path | None = None, cache: Path = CACHE) -> None:

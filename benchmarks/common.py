@@ -176,17 +176,21 @@ def is_learned_method(method: str) -> bool:
     return method.startswith(LEARNED_METHOD_PREFIX)
 
 
-def bundled_model_id(model_dir: Path | None = None) -> str:
+def bundled_model_id(model_dir: Path | None = None, without_calibration: bool = False) -> str:
     """A short fingerprint of what a model directory makes the runtime do (default: the
     bundled model).
 
     Derived from its manifest without the descriptive parts (provenance, training config):
     the ONNX files' SHA-256 checksums and every setting the runtime reads from it (geometry,
     normalization, matching, and the "runtime" section, e.g. the success-flag calibration).
-    So retraining, re-exporting or recalibrating the model changes it.
+    So retraining, re-exporting or recalibrating the model changes it. With
+    ``without_calibration``, the calibration ("runtime" -> "verification") is left out: the
+    identity of the matches, which a recalibration does not change.
     """
     manifest = read_manifest(Path(model_dir) if model_dir is not None else bundled_model_dir())
     used = {k: v for k, v in manifest.to_dict().items() if k not in ("provenance", "model_config")}
+    if without_calibration:
+        used["runtime"] = {k: v for k, v in used["runtime"].items() if k != "verification"}
     return sha256(json.dumps(used, sort_keys=True).encode()).hexdigest()[:12]
 
 

@@ -274,9 +274,15 @@ def test_the_model_id_changes_with_the_calibration_not_with_the_provenance(tmp_p
     manifest["provenance"]["note"] = "described again"
     (model / "manifest.json").write_text(json.dumps(manifest))
     assert common.bundled_model_id(model) == bundled
+    matches = common.bundled_model_id(model, without_calibration=True)
     manifest["runtime"].setdefault("verification", {})["success_threshold"] = 0.77
     (model / "manifest.json").write_text(json.dumps(manifest))
     assert common.bundled_model_id(model) != bundled
+    # The matches do not depend on the calibration: a calibration cache stays that model's.
+    assert common.bundled_model_id(model, without_calibration=True) == matches
+    manifest["matching"]["sinkhorn_iterations"] = 7
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model, without_calibration=True) != matches
 
 
 def test_bundled_model_id_follows_the_onnx_files(tmp_path):
