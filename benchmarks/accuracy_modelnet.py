@@ -28,10 +28,10 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from common import (  # noqa: E402
+    ANY_RELATIVE_SUFFIX,
     DEFAULT_SEED,
     PUBLISHED,
     RESULTS,
-    ANY_RELATIVE_SUFFIX,
     ROTATED_SUFFIX,
     SUCCESS_ROTATION_DEG,
     SUCCESS_TRANSLATION_FRACTION,
@@ -86,7 +86,8 @@ STEM = "modelnet10_accuracy"
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=908, help="test shapes per protocol (all: 908)")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=PROTOCOLS + RESAMPLED + ROTATED + ANY_RELATIVE,
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS),
+                        choices=PROTOCOLS + RESAMPLED + ROTATED + ANY_RELATIVE,
                         help="the paper's protocols, or the resampled ones (no point shared by the two clouds); "
                              "'<protocol>_rotated' turns both clouds by a random rotation, "
                              "'<protocol>_any_relative' then the target alone (relative rotations of any size)")
@@ -96,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--model-dir", type=Path, default=None,
                         help="an exported model folder (export/to_onnx.py) instead of the bundled one; "
-                             "the per-pair cache keeps one model's records (another's are re-run): use another --out to keep both")
+                             "the per-pair cache keeps one model's records (another's are re-run): "
+                             "use another --out to keep both")
     parser.add_argument("--open3d-tuning", type=Path, default=TUNING_FILE,
                         help="the tune_open3d.py sweep whose chosen Open3D parameters the baselines use; "
                              "baseline records of other parameters are re-run: use another --out to keep both")

@@ -104,7 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     since = args.since_step or [0] * len(args.logs)
     if not len(args.logs) == len(args.labels) == len(since):
         parser.error("give one --labels and one --since-step value per log")
-    runs = {label: nll_by_pairs(read_log(log), step, args.bin) for log, label, step in zip(args.logs, args.labels, since)}
+    runs = {
+        label: nll_by_pairs(read_log(log), step, args.bin)
+        for log, label, step in zip(args.logs, args.labels, since, strict=True)
+    }
     command = "python -m training.learning_by_pairs " + " ".join(argv if argv is not None else sys.argv[1:])
     text = comparison_markdown(runs, args.bin, args.protocols, command)
     if args.out is None:
