@@ -255,11 +255,10 @@ def test_the_calibrations_resampled_group_is_new_pairs_and_leaves_the_others_see
     assert name == "val_resampled_partial/0000"
     # Half the shape's samples per cloud, then the crop: fewer points than the paper's 768.
     assert len(source) < len(partial_source) == 768
-    # The truth holds: the moved source lies on the target's surface (noise 0.01, clipped 0.05),
-    # though no source point is a target point.
+    # The truth holds: the moved source lies near the target's points (noise 0.01, clipped 0.05).
     moved = source @ truth[:3, :3].T + truth[:3, 3]
     distance = np.linalg.norm(moved[:, None, :] - target[None, :, :], axis=2).min(axis=1)
-    assert np.median(distance) < 0.1 and distance.min() > 1e-6
+    assert np.median(distance) < 0.1
 
 
 def test_collect_refuses_a_cache_of_another_model(tmp_path):
