@@ -62,10 +62,12 @@ from methods import (  # noqa: E402
 )
 from plots import error_cdf  # noqa: E402
 
-PROTOCOLS = ("clean", "noisy", "partial")
+from logdesc_rt.synthetic import PAPER_PROTOCOLS, RESAMPLED_PROTOCOLS  # noqa: E402
+
+PROTOCOLS = PAPER_PROTOCOLS  # the default run
 # Beyond the paper: each cloud its own half of the shape's samples, so no point has a twin in the
 # other cloud, as in real scan pairs (logdesc_rt.synthetic; correspondences by geometry).
-RESAMPLED = ("resampled", "resampled_partial")
+RESAMPLED = RESAMPLED_PROTOCOLS
 ROTATED = tuple(f"{protocol}{ROTATED_SUFFIX}" for protocol in PROTOCOLS + RESAMPLED)
 ANY_RELATIVE = tuple(f"{protocol}{ANY_RELATIVE_SUFFIX}" for protocol in PROTOCOLS + RESAMPLED)
 PROTOCOL_TITLES = {
