@@ -322,3 +322,43 @@ def test_learning_by_pairs_counts_pairs_from_where_each_run_began(tmp_path):
     # Run a from step 0: 320 -> bin 0; 640 and 960 -> bin 500 (mean of 5 and 3); 1600 -> 1500.
     assert "| 0-500 | 9.00 (1) | 3.00 (1) |" in table and "| 500-1,000 | 4.00 (2) | 2.00 (1) |" in table
     assert "| 1,500-2,000 | 2.00 (1) | - |" in table
+
+
+def test_a_weights_only_checkpoint_keeps_the_model_and_resumes_its_schedule(trained, tmp_path):
+    full = trained / "last.pt"
+    slim = tmp_path / "slim.pt"
+    _run([sys.executable, "-m", "training.checkpoint", "weights-only", str(full), str(slim)])
+    before, after = _checkpoint(full), _checkpoint(slim)
+    assert after["weights_only"] is True
+    assert not {"optimizer", "scheduler", "rng_states"} & set(after)
+    assert slim.stat().st_size < full.stat().st_size
+    assert after["step"] == before["step"] and after["model_config"] == before["model_config"]
+    for name, tensor in before["model"].items():
+        assert torch.equal(after["model"][name], tensor), name
+
+    out = tmp_path / "resumed"
+    result = _run([sys.executable, "-m", "training.train", "--out", str(out), "--resume", str(slim),
+                   "--max-steps", str(before["step"] + 2), *COMMON])
+    assert "weights-only checkpoint" in result.stderr
+    resumed = _checkpoint(out / "last.pt")
+    assert resumed["step"] == before["step"] + 2
+    # Adam starts afresh (its step count is the steps since the resume) while the schedule
+    # continues: the lr of each resumed step is the one an exact resume uses.
+    assert int(next(iter(resumed["optimizer"]["state"].values()))["step"]) == 2
+    exact = tmp_path / "exact"
+    _run([sys.executable, "-m", "training.train", "--out", str(exact), "--resume", str(full),
+          "--max-steps", str(before["step"] + 2), *COMMON])
+
+    def learning_rates(run: Path) -> dict[int, float]:
+        return {r["step"]: r["lr"] for r in _log(run) if r["type"] == "train"}
+
+    assert sorted(learning_rates(out)) == [before["step"] + 1, before["step"] + 2]
+    assert learning_rates(out) == pytest.approx(learning_rates(exact))
+
+
+def test_weights_only_refuses_to_overwrite_its_input(trained):
+    result = subprocess.run(
+        [sys.executable, "-m", "training.checkpoint", "weights-only", str(trained / "last.pt"), str(trained / "last.pt")],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode != 0 and "must differ" in result.stderr

@@ -5,10 +5,15 @@ progress counters (``step``, ``pairs_seen``, ``wall_time_s``), the best validati
 every config the run used (``model_config``, ``geometry_config``, ``normalization_config``,
 ``matching_config``, ``train_args``), so a model can always be rebuilt and its preprocessing
 reproduced from the file alone.
+
+A *weights-only* checkpoint (``python -m training.checkpoint weights-only IN OUT``) drops the
+optimiser, scheduler and RNG states: a third of the size, for committing a shipped model.
+Training resumes from it with fresh Adam moments (see :func:`training.train.start_run`).
 """
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +25,9 @@ _PROVENANCE_KEYS = (
     "step", "pairs_seen", "wall_time_s", "best_metric", "best_metric_name", "best_step",
     "git_commit", "torch_version",
 )
+
+# What only an exact resume needs: Adam's moments, the schedule's state, the RNG streams.
+RESUME_STATE_KEYS = ("optimizer", "scheduler", "rng_states")
 
 
 @dataclass(frozen=True)
@@ -77,3 +85,36 @@ def load_model(path, device="cpu"):
         provenance=provenance,
     )
     return model_from_checkpoint(checkpoint, device), info
+
+
+def weights_only(checkpoint: dict) -> dict:
+    """The checkpoint without :data:`RESUME_STATE_KEYS`, marked ``weights_only: True``; the
+    model, counters, configs and provenance are kept as they are."""
+    slim = {key: value for key, value in checkpoint.items() if key not in RESUME_STATE_KEYS}
+    slim["weights_only"] = True
+    return slim
+
+
+def is_weights_only(checkpoint: dict) -> bool:
+    """True when the checkpoint lacks any of the states an exact resume needs."""
+    return any(key not in checkpoint for key in RESUME_STATE_KEYS)
+
+
+def main(argv=None) -> int:
+    import torch
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    slim = commands.add_parser("weights-only", help="write the checkpoint without its resume states")
+    slim.add_argument("checkpoint", type=Path)
+    slim.add_argument("out", type=Path)
+    args = parser.parse_args(argv)
+    if args.out.resolve() == args.checkpoint.resolve():
+        parser.error("OUT must differ from the checkpoint: the resume states would be lost")
+    torch.save(weights_only(load_checkpoint(args.checkpoint)), args.out)
+    print(f"{args.out}: {args.out.stat().st_size / 1e6:.1f} MB (was {args.checkpoint.stat().st_size / 1e6:.1f} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -60,6 +60,7 @@ from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfi
 from logdesc_rt.matching import matches_as_array
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, rotation_error_deg
 from logdesc_rt.pose import FsrConfig
+from training.checkpoint import is_weights_only
 from training.config import PRESETS, ModelConfig
 from training.data import (
     DEFAULT_DATA_ROOT,
@@ -665,12 +666,23 @@ def start_run(args) -> TrainingRun:
 
 
 def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
-    """Load the model, Adam and schedule states and the RNG states; the counters to continue."""
+    """Load the model, Adam and schedule states and the RNG states; the counters to continue.
+
+    A weights-only checkpoint (:func:`training.checkpoint.weights_only`) continues the counters
+    and the schedule with fresh Adam moments and RNG streams seeded from ``--seed`` and the step:
+    repeatable, but not the run that would have continued from the full checkpoint."""
     model.load_state_dict(checkpoint["model"])
-    optimizer.load_state_dict(checkpoint["optimizer"])
+    exact = not is_weights_only(checkpoint)
+    if exact:
+        optimizer.load_state_dict(checkpoint["optimizer"])
+    else:
+        print("note: weights-only checkpoint: Adam's moments and the RNG streams start afresh", file=sys.stderr)
     for group in optimizer.param_groups:  # the CLI's lr wins (e.g. a resumed fine-tune)
         group["initial_lr"] = args.lr
-    scheduler.load_state_dict(checkpoint["scheduler"])
+    if exact:
+        scheduler.load_state_dict(checkpoint["scheduler"])
+    else:
+        scheduler.last_epoch = int(checkpoint["step"])
     scheduler.base_lrs = [args.lr for _ in scheduler.base_lrs]
     same_metric = checkpoint.get("best_metric_name", args.best_metric) == args.best_metric
     progress = Progress(
@@ -680,7 +692,12 @@ def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
         best_metric=checkpoint.get("best_metric") if same_metric else None,
         best_step=checkpoint.get("best_step"),
     )
-    restore_rng_states(checkpoint["rng_states"])
+    if exact:
+        restore_rng_states(checkpoint["rng_states"])
+    else:
+        random.seed(args.seed + progress.step)
+        np.random.seed(args.seed + progress.step)
+        torch.manual_seed(args.seed + progress.step)
     # The scheduler's lambda closes over args: re-evaluate the lr at the restored step.
     for group in optimizer.param_groups:
         group["lr"] = args.lr * lr_factor(progress.step, args)
