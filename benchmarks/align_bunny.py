@@ -45,29 +45,13 @@ import numpy as np  # noqa: E402
 from common import DATA_ROOT, RESULTS, command_line, machine_info, write_report  # noqa: E402
 
 from logdesc_rt.align import AlignConfig, align, merge_scans  # noqa: E402
-from logdesc_rt.io import read_point_cloud  # noqa: E402
+from logdesc_rt.io import read_point_cloud, read_stanford_conf  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
 from logdesc_rt.sampling import voxel_downsample  # noqa: E402
 
 BUNNY_DIR = DATA_ROOT / "stanford_bunny" / "data"
 GOAL_DEG, GOAL_MM = 1.0, 1.0
 EDGE_RIGHT_DEG = 5.0  # an edge is "right" when its rotation is within this of the truth
-
-
-def read_truth(conf: Path) -> dict[str, np.ndarray]:
-    """bun.conf -> name: (4, 4) scan -> common frame (qw's sign flipped; the data README)."""
-    from scipy.spatial.transform import Rotation
-
-    poses = {}
-    for line in conf.read_text().splitlines():
-        fields = line.split()
-        if fields and fields[0] == "bmesh":
-            tx, ty, tz, qx, qy, qz, qw = map(float, fields[2:9])
-            pose = np.eye(4)
-            pose[:3, :3] = Rotation.from_quat([qx, qy, qz, -qw]).as_matrix()
-            pose[:3, 3] = (tx, ty, tz)
-            poses[fields[1]] = pose
-    return poses
 
 
 def scan_errors(estimated: dict[str, np.ndarray | None], truth: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -251,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
-    truth_world = read_truth(BUNNY_DIR / "bun.conf")
+    truth_world = read_stanford_conf(BUNNY_DIR / "bun.conf")
     paths = sorted(BUNNY_DIR.glob("*.ply"))
     order = np.random.default_rng(args.seed).permutation(len(paths))
     paths = [paths[i] for i in order]

@@ -89,10 +89,9 @@ from methods import (  # noqa: E402
 )
 from plots import error_cdf  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from logdesc_rt.io import read_point_cloud  # noqa: E402
+from logdesc_rt.io import read_point_cloud, read_stanford_conf  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
 from logdesc_rt.normalization import PairNormalization  # noqa: E402
 from logdesc_rt.sampling import farthest_point_sampling  # noqa: E402
@@ -148,29 +147,9 @@ class BunnyScan:
         return Path(self.name).stem
 
 
-def read_scan_poses(conf_path: Path) -> dict[str, np.ndarray]:
-    """``bun.conf``'s ``bmesh NAME tx ty tz qx qy qz qw`` lines as (4, 4) scan -> world.
-
-    The quaternion aligns the scans only with the sign of qw flipped (verified in
-    ``../shared/data/README.md``): ``p_world = R p + t``,
-    R = ``Rotation.from_quat([qx, qy, qz, -qw])`` (scipy, scalar-last).
-    """
-    poses = {}
-    for line in Path(conf_path).read_text().splitlines():
-        fields = line.split()
-        if not fields or fields[0] != "bmesh":
-            continue
-        tx, ty, tz, qx, qy, qz, qw = map(float, fields[2:9])
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_quat([qx, qy, qz, -qw]).as_matrix()
-        pose[:3, 3] = (tx, ty, tz)
-        poses[fields[1]] = pose
-    return poses
-
-
 def load_scans(data_dir: Path = BUNNY_DIR) -> list[BunnyScan]:
     """The 10 scans with their poses, in file-name order (which numbers them 0-9)."""
-    poses = read_scan_poses(Path(data_dir) / "bun.conf")
+    poses = read_stanford_conf(Path(data_dir) / "bun.conf")
     paths = sorted(Path(data_dir).glob("*.ply"))
     missing = [path.name for path in paths if path.name not in poses]
     if missing or not paths:

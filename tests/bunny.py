@@ -6,28 +6,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from logdesc_rt.io import read_point_cloud
-
-
-def scan_poses(bunny_dir: Path) -> dict[str, np.ndarray]:
-    """Scan file name -> (4, 4) pose placing the scan in the common frame (metres).
-
-    ``bun.conf`` lines read ``bmesh NAME tx ty tz qx qy qz qw``; the rotation is the
-    quaternion with the sign of ``qw`` flipped (verified in the data README).
-    """
-    poses = {}
-    for line in (bunny_dir / "bun.conf").read_text().splitlines():
-        words = line.split()
-        if not words or words[0] != "bmesh":
-            continue
-        tx, ty, tz, qx, qy, qz, qw = map(float, words[2:9])
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_quat([qx, qy, qz, -qw]).as_matrix()
-        pose[:3, 3] = [tx, ty, tz]
-        poses[words[1]] = pose
-    return poses
+from logdesc_rt.io import read_point_cloud, read_stanford_conf
 
 
 @lru_cache(maxsize=16)
@@ -52,7 +32,7 @@ def bunny_pair(
         source (N, 3), target (M, 3) float64 and the (4, 4) transform ``inv(T_target) @ T_source``.
     """
     folder = data_root / "stanford_bunny" / "data"
-    poses = scan_poses(folder)
+    poses = read_stanford_conf(folder / "bun.conf")
     clouds = []
     generator = np.random.default_rng(seed)
     for name in (source, target):

@@ -19,7 +19,7 @@ from logdesc_rt.errors import (
     PointCloudFileError,
     PointCloudShapeError,
 )
-from logdesc_rt.io import CORE_SUFFIXES, SUPPORTED_SUFFIXES, read_point_cloud, write_point_cloud
+from logdesc_rt.io import CORE_SUFFIXES, SUPPORTED_SUFFIXES, read_point_cloud, read_stanford_conf, write_point_cloud
 from logdesc_rt.io.pcd import lzf_decompress as _lzf_decompress
 from logdesc_rt.io.ply import SCALAR_TYPES, read_header
 from logdesc_rt.validation import MAX_ABS_COORDINATE
@@ -891,3 +891,56 @@ def test_normals_turn_with_the_pose_and_colours_do_not():
     assert np.allclose(turned, normals @ rotation.T, atol=1e-6)
     assert moved["nx"].dtype == np.float32
     assert np.array_equal(moved["red"], attributes["red"]) and np.array_equal(moved["intensity"], attributes["intensity"])
+
+
+def test_stanford_conf_poses_overlay_two_real_scans():
+    conf = BUNNY_SCAN.parent / "bun.conf"
+    if not conf.is_file():
+        pytest.skip(f"shared data not found at {conf}")
+    poses = read_stanford_conf(conf)
+    assert len(poses) == 10 and {"bun000.ply", "bun045.ply"} <= set(poses)
+    from pykdtree.kdtree import KDTree
+
+    source, target = (read_point_cloud(BUNNY_SCAN.parent / name) for name in ("bun000.ply", "bun045.ply"))
+    moved = source @ poses["bun000.ply"][:3, :3].T + poses["bun000.ply"][:3, 3]
+    in_target = (moved - poses["bun045.ply"][:3, 3]) @ poses["bun045.ply"][:3, :3]
+    distance, _ = KDTree(target).query(in_target, k=1)
+    # The scans overlap by about 80 % at 0.5 mm spacing: with the convention's sign of qw the
+    # overlap lines up to scanner noise; with the quaternion as written, it would not.
+    assert np.median(distance) < 0.001
+
+
+def test_stanford_conf_reads_bmesh_lines_and_skips_the_camera(tmp_path):
+    conf = tmp_path / "scans.conf"
+    # A quarter turn about z written as scanalyze does: (qx, qy, qz, qw) with qw's sign flipped.
+    half = np.sqrt(0.5)
+    conf.write_text(f"camera 0 0 1 0 0 0 1\nbmesh a.ply 1 2 3 0 0 {half} {-half}\n\nbmesh b.ply 0 0 0 0 0 0 1\n")
+    poses = read_stanford_conf(conf)
+    assert list(poses) == ["a.ply", "b.ply"]
+    expected = np.array([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    np.testing.assert_allclose(poses["a.ply"], expected, atol=1e-12)
+    np.testing.assert_allclose(poses["b.ply"], np.eye(4), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        ("camera 0 0 0 0 0 0 1\n", "no 'bmesh' line"),
+        ("bmesh a.ply 1 2 3 0 0 0\n", "line 1: expected seven finite numbers"),
+        ("bmesh a.ply 1 2 x 0 0 0 1\n", "line 1: expected 'bmesh NAME"),
+        ("bmesh a.ply 1 2 nan 0 0 0 1\n", "line 1: expected seven finite numbers"),
+        ("bmesh a.ply 0 0 0 0 0 0 1\nbmesh a.ply 0 0 0 0 0 0 1\n", "line 2: scan a.ply is listed twice"),
+        ("bmesh a.ply 0 0 0 0 0 0 0\n", "quaternion of a.ply is zero"),
+    ],
+)
+def test_stanford_conf_errors_name_the_file_and_line(tmp_path, content, problem):
+    conf = tmp_path / "scans.conf"
+    conf.write_text(content)
+    with pytest.raises(PointCloudFileError, match=re.escape(problem)) as error:
+        read_stanford_conf(conf)
+    assert str(error.value).startswith(str(conf))
+
+
+def test_stanford_conf_missing_file(tmp_path):
+    with pytest.raises(PointCloudFileError, match="no such file"):
+        read_stanford_conf(tmp_path / "absent.conf")
