@@ -163,12 +163,12 @@ def test_v3_graphs_hold_no_pairwise_index_or_gather(v3_registrar):
 
 # -- a trained v3 ----------------------------------------------------------------------------
 
-V3_CHECKPOINT = Path(__file__).resolve().parents[1] / "training" / "checkpoints" / "v3_cpu_last.pt"
+V3_CHECKPOINT = Path(__file__).resolve().parents[1] / "training" / "checkpoints" / "v3.pt"
 
 
 @pytest.fixture(scope="module")
 def trained_v3_registrar(tmp_path_factory) -> Registrar:
-    """The committed v3 training checkpoint (training/checkpoints/v3_cpu_last.pt), exported."""
+    """The committed v3 training checkpoint (training/checkpoints/v3.pt), exported."""
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
     if not V3_CHECKPOINT.is_file():

@@ -12,10 +12,11 @@
 # checkpoint, evaluate with `python -m training.evaluate ... --split val [--any-orientation]`.
 #
 # Environment overrides (defaults in brackets), so the same script is tested on the CPU:
-#   RESUME [training/checkpoints/v3_cpu_last.pt]  DEVICE [cuda]  MINUTES [9]  BATCH [48]
+#   RESUME [training/checkpoints/v3.pt]  DEVICE [cuda]  MINUTES [9]  BATCH [48]
 #   WORKERS [4]  DATA [.device_pack]  OUT [$OUT, or runs/device]  EXTRA [--amp]
-# The schedule is the CPU run's since its step 1103 (cosine to step 8000), so a GPU run does not
-# stop at an older horizon. The protocol mix is the CPU run's since its step 3825: 55 % resampled
+# The schedule is the CPU run's from its step 1103 to 6022 (cosine to step 8000); the CPU run then
+# ended its cosine at step 7500. Continuing past that needs a new cycle, chosen through EXTRA
+# (later flags win: --max-steps, --decay-steps, --lr); no such cycle has been tried yet. The protocol mix is the CPU run's since its step 3825: 55 % resampled
 # pairs (each cloud its own samples, as real scans; 30 % from step 1206: at step 1003 v3 registered
 # 4 % of resampled validation pairs, v2 92 %; at step 2208 19.5 %), 35 % partial, and few clean or
 # noisy ones (where v3 already beats v2; reasons in training/checkpoints/v3_cpu_notes.json); the
@@ -25,7 +26,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-resume=${RESUME:-training/checkpoints/v3_cpu_last.pt}
+resume=${RESUME:-training/checkpoints/v3.pt}
 out=${OUT:-runs/device}/run
 mkdir -p "$out"
 python -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"

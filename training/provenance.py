@@ -4,7 +4,7 @@ Usage (from the repository root)::
 
     python -m training.provenance training/checkpoints/v3_cpu_log.jsonl \
         --notes training/checkpoints/v3_cpu_notes.json \
-        --checkpoint training/checkpoints/v3_cpu_last.pt \
+        --checkpoint training/checkpoints/v3.pt \
         --out training/checkpoints/v3_cpu_provenance.json
 
 The log (``training.train``'s ``log.jsonl``) already holds every fact that drifts when a run
