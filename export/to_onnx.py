@@ -196,6 +196,12 @@ def _rotate(points: np.ndarray) -> np.ndarray:
     return points @ Rotation.from_euler("zyx", [30.0, 20.0, 10.0], degrees=True).as_matrix().T
 
 
+def checkpoint_name(path: Path) -> str:
+    """The checkpoint's path relative to the repository root (POSIX), or as given if outside it."""
+    resolved = Path(path).resolve()
+    return resolved.relative_to(ROOT).as_posix() if resolved.is_relative_to(ROOT) else str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Export a logdesc-rt checkpoint to ONNX and check it.")
     parser.add_argument("checkpoint", type=Path)
@@ -205,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out_dir = args.out or bundled_model_dir()
     provenance = json.loads(args.provenance.read_text()) if args.provenance else {}
+    # Which file the ONNX files must match (tests/test_export.py checks the bundled model against it).
+    provenance["checkpoint_file"] = checkpoint_name(args.checkpoint)
     model, info = load_model(args.checkpoint)
     export(model, info, out_dir, args.opset, provenance)
     ok = compare_with_torch(model, info, out_dir)

@@ -74,7 +74,9 @@ def test_align_recovers_known_poses_and_reports_the_scan_that_overlaps_nothing(m
     for name, true_pose in zip(names, truth):
         pose = result.poses[name]
         assert rotation_error_deg(pose[:3, :3], true_pose[:3, :3]) < 1.0, name
-        assert np.linalg.norm(pose[:3, 3] - true_pose[:3, 3]) < 0.01 * radius, name
+        # 1 degree turns a point at the scan's radius by 1.75 % of it: the translation's bound
+        # matches the rotation's.
+        assert np.linalg.norm(pose[:3, 3] - true_pose[:3, 3]) < 0.02 * radius, name
     assert result.candidate_pairs == 10
     assert {(item["first"], item["second"]) for item in result.rejected} >= {(k, 4) for k in range(4)}
 

@@ -131,20 +131,21 @@ def test_plot_without_matplotlib_fails_before_the_work(cloud_files, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def beyond_range_files(tmp_path_factory):
-    """The demo pair with the target turned a further 150 deg: beyond the model's range."""
-    from scipy.spatial.transform import Rotation
-
-    folder = tmp_path_factory.mktemp("beyond")
-    pair = make_demo_pair()
-    turn = Rotation.from_euler("y", 150, degrees=True).as_matrix()
-    write_point_cloud(folder / "source.ply", pair.source)
-    write_point_cloud(folder / "target.ply", pair.target @ turn.T)
+def unregistrable_files(tmp_path_factory):
+    """Two ends of the demo shape, cut across its longest axis, that share no surface: no pose
+    is right, whatever the model (an invariant one registers any rotation of the demo pair)."""
+    folder = tmp_path_factory.mktemp("unregistrable")
+    points = make_demo_pair().source
+    centred = points - points.mean(axis=0)
+    along = centred @ np.linalg.svd(centred, full_matrices=False)[2][0]
+    gap = 0.05 * np.ptp(along)
+    write_point_cloud(folder / "source.ply", points[along < -gap])
+    write_point_cloud(folder / "target.ply", points[along > gap])
     return folder
 
 
-def test_a_failed_registration_has_its_own_exit_code(beyond_range_files):
-    folder = beyond_range_files
+def test_a_failed_registration_has_its_own_exit_code(unregistrable_files):
+    folder = unregistrable_files
     completed = run_cli("register", str(folder / "source.ply"), str(folder / "target.ply"), "--json")
     assert completed.returncode == 3, completed.stderr
     result = json.loads(completed.stdout)  # the pose is still printed

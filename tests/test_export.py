@@ -17,7 +17,6 @@ from logdesc_rt.matching import sinkhorn_matches  # noqa: E402
 from logdesc_rt.network import OnnxNetwork, bundled_model_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED_CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_v2.pt"
 
 
 def test_bundled_model_matches_its_torch_checkpoint():
@@ -29,8 +28,9 @@ def test_bundled_model_matches_its_torch_checkpoint():
     from export.to_onnx import compare_with_torch
     from training.checkpoint import load_model
 
-    model, info = load_model(SHIPPED_CHECKPOINT)
     network = OnnxNetwork()
+    shipped_checkpoint = ROOT / network.manifest.provenance["checkpoint_file"]  # written by the export
+    model, info = load_model(shipped_checkpoint)
     assert network.manifest.geometry == info.geometry
     assert network.manifest.dustbin_score == pytest.approx(float(model.dustbin_score))
     assert compare_with_torch(model, info, bundled_model_dir())
@@ -60,6 +60,7 @@ def test_export_script_writes_a_loadable_checked_model(tmp_path):
     assert export_main([str(checkpoint), "--out", str(out)]) == 0
     registrar = Registrar(out)
     assert registrar.manifest.descriptor_dim == config.descriptor_dim
+    assert registrar.manifest.provenance["checkpoint_file"] == str(checkpoint)  # outside the repository: as given
     # The runtime on the exported files computes what torch computes on the same inputs, and
     # its matches are the Sinkhorn reading of those scores with the exported dustbin.
     pair = make_demo_pair()

@@ -95,7 +95,9 @@ def test_prepare_is_where_match_starts(registrar, demo_pair):
     assert np.array_equal(prepared.source_geometry.edges, compute_geometry(expected, registrar.manifest.geometry).edges)
     pair = registrar.match(demo_pair.source, demo_pair.target)
     assert np.array_equal(pair.target_network, prepared.target_network)
-    descriptors = registrar.network.describe(prepared.source_geometry.edges, prepared.source_network)
+    descriptors = registrar.network.describe(
+        prepared.source_geometry.edges, prepared.source_network, prepared.source_geometry.normals
+    )
     assert np.array_equal(pair.source_descriptors, descriptors)
     # a larger working size than the cloud: nothing is subsampled (the latency benchmark's use)
     big = Registrar(max_points=4 * len(demo_pair.source)).prepare(demo_pair.source, demo_pair.target)
