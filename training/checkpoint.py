@@ -8,7 +8,7 @@ reproduced from the file alone.
 
 A *weights-only* checkpoint (``python -m training.checkpoint weights-only IN OUT``) drops the
 optimiser, scheduler and RNG states: a third of the size, for committing a shipped model.
-Training resumes from it with fresh Adam moments (see :func:`training.train.start_run`).
+Training resumes from it with fresh Adam moments (see :func:`training.train._restore`).
 """
 
 from __future__ import annotations

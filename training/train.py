@@ -288,6 +288,13 @@ def rng_states() -> dict:
     return states
 
 
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
 def restore_rng_states(states: dict) -> None:
     random.setstate(states["python"])
     np.random.set_state(states["numpy"])
@@ -631,9 +638,7 @@ def start_run(args) -> TrainingRun:
     if args.lr is None:
         args.lr = DEFAULT_LR.get(args.preset, 1e-3)
 
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
+    seed_everything(args.seed)
     model = LoGDescMatcher(model_config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, args))
@@ -672,32 +677,26 @@ def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
     and the schedule with fresh Adam moments and RNG streams seeded from ``--seed`` and the step:
     repeatable, but not the run that would have continued from the full checkpoint."""
     model.load_state_dict(checkpoint["model"])
-    exact = not is_weights_only(checkpoint)
-    if exact:
-        optimizer.load_state_dict(checkpoint["optimizer"])
-    else:
+    step = int(checkpoint["step"])
+    if is_weights_only(checkpoint):
         print("note: weights-only checkpoint: Adam's moments and the RNG streams start afresh", file=sys.stderr)
+        scheduler.last_epoch = step
+        seed_everything(args.seed + step)
+    else:
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        scheduler.load_state_dict(checkpoint["scheduler"])
+        restore_rng_states(checkpoint["rng_states"])
     for group in optimizer.param_groups:  # the CLI's lr wins (e.g. a resumed fine-tune)
         group["initial_lr"] = args.lr
-    if exact:
-        scheduler.load_state_dict(checkpoint["scheduler"])
-    else:
-        scheduler.last_epoch = int(checkpoint["step"])
     scheduler.base_lrs = [args.lr for _ in scheduler.base_lrs]
     same_metric = checkpoint.get("best_metric_name", args.best_metric) == args.best_metric
     progress = Progress(
-        step=int(checkpoint["step"]),
+        step=step,
         pairs_seen=int(checkpoint["pairs_seen"]),
         wall_time_s=float(checkpoint["wall_time_s"]),
         best_metric=checkpoint.get("best_metric") if same_metric else None,
         best_step=checkpoint.get("best_step"),
     )
-    if exact:
-        restore_rng_states(checkpoint["rng_states"])
-    else:
-        random.seed(args.seed + progress.step)
-        np.random.seed(args.seed + progress.step)
-        torch.manual_seed(args.seed + progress.step)
     # The scheduler's lambda closes over args: re-evaluate the lr at the restored step.
     for group in optimizer.param_groups:
         group["lr"] = args.lr * lr_factor(progress.step, args)
