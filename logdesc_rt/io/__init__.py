@@ -49,7 +49,7 @@ Without the extra, reading or writing such a file raises PointCloudFileError nam
 extra to install; :func:`check_format_available` says so before any work.
 
 Scan sets: :func:`read_stanford_conf` reads the scans' poses from a Stanford 3D Scanning
-Repository ``.conf`` file (:mod:`.stanford_conf`), e.g. to check ``logdesc_rt.align`` against them.
+Repository ``.conf`` file (:mod:`.scan_set_poses`), e.g. to check ``logdesc_rt.align`` against them.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ from ..errors import LogdescError, PointCloudFileError  # noqa: F401 (PointCloud
 from ..validation import as_points
 from . import e57, las, npy, off, pcd, ply, text
 from ._common import PARSE_ERRORS, MissingLibraryError, check_readable_file, file_error
-from .stanford_conf import read_stanford_conf  # noqa: F401 (re-exported)
+from .scan_set_poses import read_stanford_conf  # noqa: F401 (re-exported)
 
 CORE_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".off")
 """Suffixes read and written with the run-time dependencies alone, float64 values exactly."""
