@@ -37,7 +37,7 @@ calls; each child makes one untimed warm-up call first.
    match count and the rotation error (degrees, against the true motion) of the last
    call say what the timed calls achieved.
 2. onnxruntime (ORT) vs torch eager: the same weights (the shipped ONNX model was
-   exported from ``training/checkpoints/small_h100_v2.pt``), the same float32 inputs
+   exported from the checkpoint its manifest names), the same float32 inputs
    (the geometry is computed once, by the parent), the same T threads, torch under
    ``torch.inference_mode()``. Each backend calls its two networks directly (no
    pipeline around them) in its own child: descriptor net = both clouds, matcher net
@@ -102,7 +102,6 @@ from logdesc_rt.synthetic import (  # noqa: E402
 STEM = "latency"
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
 BUNNY_SCAN = DATA_ROOT / "stanford_bunny" / "data" / "bun000.ply"
-CHECKPOINT = ROOT / "training" / "checkpoints" / "small_h100_v2.pt"
 OPEN3D_PEERS = ("fpfh_ransac", "fpfh_fgr")
 # Pinned to --threads in every child, so that every library uses the same T threads.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -111,8 +110,8 @@ POSE_SEED = 0  # FSR / RANSAC seed: every repeat does the same work
 # Latency is measured on registrations that succeed, so that Sinkhorn / FSR do the work of a
 # real success. The first shipped model (v1, trained on upright pairs only) failed on this pair
 # in the scan's own frame (about 100 deg) and registered it turned by -90 degrees about x.
-# small-h100-v2 no longer depends on orientation; the turn stays so that the recorded
-# timings of both models are on the same clouds.
+# Later models do not depend on orientation; the turn stays so that the recorded timings of
+# every model are on the same clouds.
 WORKING_TURN = Rotation.from_euler("x", -90.0, degrees=True).as_matrix()
 
 # (key of a stage summary, column title): RegistrationResult.timings keys, plus
@@ -528,8 +527,9 @@ def run_child(kind: str, size: int, inputs: Path, args) -> dict:
         "--inputs": inputs,
         "--threads": args.threads,
         "--repeats": args.repeats,
-        "--checkpoint": args.checkpoint,
     }
+    if args.checkpoint is not None:
+        options["--checkpoint"] = args.checkpoint
     if args.model_dir is not None:
         options["--model-dir"] = Path(args.model_dir).resolve()
     command = [sys.executable, str(Path(__file__).resolve())]
@@ -821,8 +821,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--checkpoint",
         type=Path,
-        default=CHECKPOINT,
-        help="torch checkpoint the ONNX model (--model-dir) was exported from",
+        default=None,
+        help="torch checkpoint the ONNX model (--model-dir) was exported from (default: the one "
+        "its manifest names, provenance -> checkpoint_file)",
     )
     parser.add_argument(
         "--model-dir", type=Path, default=None,
@@ -877,6 +878,11 @@ def main(argv=None) -> int:
 
     model_dir = args.model_dir or bundled_model_dir()
     min_points = read_manifest(model_dir).geometry.min_points
+    if args.checkpoint is None:
+        exported_from = read_manifest(model_dir).provenance.get("checkpoint_file")
+        if exported_from is None and not args.no_torch:
+            raise SystemExit(f"{model_dir}/manifest.json names no checkpoint_file: pass --checkpoint or --no-torch")
+        args.checkpoint = ROOT / exported_from if exported_from else None
     sizes = sorted(set(args.sizes))
     if sizes[0] < min_points or args.repeats < 1 or args.threads < 1:
         raise SystemExit(
@@ -912,7 +918,7 @@ def main(argv=None) -> int:
                     results[size][kind] = result
 
     pose = pairs[sizes[0]]["T_gt"]
-    checkpoint = args.checkpoint.resolve()
+    checkpoint = None if args.checkpoint is None else args.checkpoint.resolve()
     payload = {
         "machine": machine_info(),
         "command": command_line(),
@@ -922,10 +928,8 @@ def main(argv=None) -> int:
         "repeats": args.repeats,
         "seed": args.seed,
         "T_gt": pose,
-        "checkpoint": str(
-            checkpoint.relative_to(ROOT)
-            if checkpoint.is_relative_to(ROOT)
-            else checkpoint
+        "checkpoint": None if checkpoint is None else str(
+            checkpoint.relative_to(ROOT) if checkpoint.is_relative_to(ROOT) else checkpoint
         ),
         "model": read_manifest(model_dir).provenance.get("name") or str(model_dir),
         "model_architecture": read_manifest(model_dir).model_config.get("architecture", "logdesc"),

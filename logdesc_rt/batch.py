@@ -8,8 +8,10 @@ ONNX sessions with ``cores / workers`` onnxruntime threads) and registers the pa
 handed. Every pair gives one JSON record, written to ``output`` (JSON lines, one record a
 line, flushed) as soon as it finishes. A pair that fails (unreadable file, degenerate cloud,
 too few matches) gives an error record; the run goes on. With ``resume=True`` pairs whose
-successful record is already in ``output`` are skipped (error records are retried), so an
-interrupted run continues where it stopped.
+record is already in ``output`` are skipped, so an interrupted run continues where it stopped:
+a pose, or an error the pair itself settles (:class:`~logdesc_rt.errors.RegistrationError`,
+e.g. too few matches: the same clouds, options and seed give it again). Other error records
+(an unreadable file, a worker that died) are retried: the file may have been mended.
 
 Record keys (the JSON-lines format):
 
@@ -48,6 +50,7 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from .config import RuntimeConfig
+from .errors import RegistrationError
 
 BACKENDS: tuple[str, ...] = ("local", "ray")
 # Keys of a record that depend on the machine's load, not on the pair: left out when records
@@ -55,6 +58,8 @@ BACKENDS: tuple[str, ...] = ("local", "ray")
 TIMING_KEYS: tuple[str, ...] = ("timings_s",)
 _FROM_CONFIG = "from-config"  # refine's default: the config's refinement (None means "no ICP")
 _NATIVE_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# Error types a record keeps on resume (is_final): the verdicts of a pipeline that ran.
+_SETTLED_ERRORS = frozenset({RegistrationError.__name__})
 
 
 @dataclass(frozen=True)
@@ -151,6 +156,16 @@ def comparable(record: dict) -> dict:
     return {key: value for key, value in record.items() if key not in TIMING_KEYS}
 
 
+def is_final(record: dict) -> bool:
+    """Whether a record needs no second run: a pose, or an error the pair itself settles.
+
+    A RegistrationError (fewer than 3 matches, degenerate matches) is the pipeline's verdict
+    on the clouds: running the pair again with the same options and seed repeats it, at the
+    cost of a network pass. Any other error (file, worker, model) may not recur.
+    """
+    return bool(record.get("ok")) or record.get("error", {}).get("type") in _SETTLED_ERRORS
+
+
 def read_records(path: str | os.PathLike) -> dict[str, dict]:
     """The records of a JSON-lines output file, by pair id (the last record of an id wins).
 
@@ -210,8 +225,9 @@ def register_many(
             None starts a local Ray instance unless one is already initialised.
         output: JSON-lines file the records are appended to as they finish (created if
             missing); None keeps them in memory only.
-        resume: skip pairs whose ``ok`` record is already in ``output`` (error records are run
-            again); False starts the file afresh.
+        resume: skip pairs whose record in ``output`` is final (:func:`is_final`: a pose, or
+            a RegistrationError); other error records are run again. False starts the file
+            afresh.
         progress: show a tqdm progress bar on stderr (None: when tqdm is installed and stderr
             is a terminal).
         on_record: called with each new record as it finishes (in completion order).
@@ -259,7 +275,7 @@ def register_many(
     done: dict[str, dict] = {}
     if output_path is not None:
         if resume:
-            done = {key: record for key, record in read_records(output_path).items() if record.get("ok")}
+            done = {key: record for key, record in read_records(output_path).items() if is_final(record)}
         else:
             output_path.write_text("")
     todo = [job for job in jobs if job.pair_id not in done]

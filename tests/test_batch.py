@@ -129,3 +129,24 @@ def test_ray_backend_gives_the_local_records(pairs):
         ray.shutdown()
     assert [comparable(r) for r in remote[:3]] == [comparable(r) for r in local]
     assert remote[3]["ok"] is False and remote[3]["error"]["type"] == "PointCloudFileError"
+
+
+def test_resume_keeps_a_too_few_matches_verdict_and_retries_other_errors(pairs, tmp_path):
+    """A RegistrationError is the pipeline's verdict on the pair: resuming would only repeat
+    it (a network pass each); an error that may not recur (here a worker crash) is retried."""
+    rng = np.random.default_rng(0)
+    # Two clouds with no surface in common: random blobs far apart match nothing.
+    blob = rng.normal(size=(600, 3)) * [0.3, 0.05, 0.01]
+    noise = rng.uniform(-1, 1, size=(600, 3))
+    work = [("unmatched", blob, noise), ("first", pairs[0][1], pairs[0][2])]
+    output = tmp_path / "results.jsonl"
+    first = register_many(work[:1], workers=0, output=output, seed=0, progress=False)
+    assert not first[0]["ok"] and first[0]["error"]["type"] == "RegistrationError", first[0]
+    with output.open("a") as handle:  # as a crashed worker leaves it
+        handle.write(json.dumps({"id": "first", "source": None, "target": None, "ok": False,
+                                 "error": {"type": "WorkerCrashed", "message": "a worker process died"}}) + "\n")
+    seen: list[str] = []
+    again = register_many(work, workers=0, output=output, seed=0, progress=False, on_record=lambda r: seen.append(r["id"]))
+    assert seen == ["first"], "the verdict is kept, the crash retried"
+    assert again[0] == first[0] and again[1]["ok"]
+    assert [record["id"] for record in _lines(output)] == ["unmatched", "first", "first"]
