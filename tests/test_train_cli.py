@@ -362,3 +362,24 @@ def test_weights_only_refuses_to_overwrite_its_input(trained):
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
     )
     assert result.returncode != 0 and "must differ" in result.stderr
+
+
+def test_a_new_cycle_warms_up_and_decays_again_from_its_start():
+    """--cycle-start restarts the schedule of a finished run: warm-up from 1 % of lr at the cycle's
+    first step, the full lr after its warm-up, the floor at its end; steps before it unchanged."""
+    from argparse import Namespace
+
+    from training.train import lr_factor
+
+    first = Namespace(warmup_steps=100, schedule="cosine", decay_steps=7500, max_steps=7500, min_lr_ratio=0.05)
+    second = Namespace(**vars(first), cycle_start=7500)
+    second.decay_steps, second.max_steps, second.warmup_steps = 2000, 9500, 50
+    assert lr_factor(7500, first) == pytest.approx(0.05)  # the first cycle ended at its floor
+    assert lr_factor(7500, second) == pytest.approx(0.01)
+    assert lr_factor(7550, second) == pytest.approx(1.0)
+    assert lr_factor(8525, second) == pytest.approx(0.525, abs=1e-3)  # half-way down the cosine
+    assert lr_factor(9500, second) == pytest.approx(0.05)
+    assert lr_factor(3000, first) == lr_factor(3000, Namespace(**vars(first), cycle_start=0))
+    # Without --decay-steps the cycle runs to --max-steps.
+    second.decay_steps = None
+    assert lr_factor(9500, second) == pytest.approx(0.05) and lr_factor(8525, second) > 0.5

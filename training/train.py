@@ -136,6 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     optim.add_argument("--decay-steps", type=int, default=None,
                        help="cosine horizon in steps (default --max-steps; constant if neither)")
     optim.add_argument("--min-lr-ratio", type=float, default=0.05, help="cosine floor, x lr")
+    optim.add_argument("--cycle-start", type=int, default=0,
+                       help="optimiser step where the schedule starts over (a warm restart of a finished "
+                            "run): warm-up and decay count from it, --decay-steps is the cycle's length")
     optim.add_argument("--step-size", type=int, default=10000, help="step decay: every N steps")
     optim.add_argument("--gamma", type=float, default=0.5, help="step decay factor")
     optim.add_argument("--grad-clip", type=float, default=1.0, help="max grad norm (0 = off)")
@@ -199,12 +202,15 @@ def atomic_torch_save(obj, path: Path) -> None:
 
 
 def lr_factor(step: int, args) -> float:
-    """Multiplier of the base lr at optimiser step ``step`` (warm-up, then the decay)."""
+    """Multiplier of the base lr at optimiser step ``step`` (warm-up, then the decay), counted
+    from the cycle's start (``--cycle-start``; checkpoints from before the option have none)."""
+    cycle_start = getattr(args, "cycle_start", 0)
+    step = max(0, step - cycle_start)
     if args.warmup_steps > 0 and step < args.warmup_steps:
         return 0.01 + 0.99 * step / args.warmup_steps
     if args.schedule == "step":
         return args.gamma ** ((step - args.warmup_steps) // max(1, args.step_size))
-    horizon = args.decay_steps or args.max_steps
+    horizon = args.decay_steps or (args.max_steps - cycle_start if args.max_steps else None)
     if args.schedule == "constant" or not horizon:
         return 1.0
     progress = min(1.0, (step - args.warmup_steps) / max(1, horizon - args.warmup_steps))
