@@ -1,8 +1,9 @@
 """Align a set of scans into one frame: candidate pairs, verified pairwise poses, a pose graph.
 
     result = align(["scan_a.ply", "scan_b.ply", "scan_c.ply"])   # in a script's main guard
-    result.poses["scan_b.ply"]      # (4, 4): scan_b's points into scan_a's (the first scan's) frame
-    result.disconnected             # scans no verified pair ties to the first one
+    result.poses["scan_b.ply"]      # (4, 4): scan_b's points into the reference scan's frame
+    result.reference                # "scan_a.ply": the first scan, unless it is cut off (5. below)
+    result.disconnected             # scans no verified pair ties to the reference
     json.dumps(result.to_json())
 
 Stages:
@@ -31,8 +32,11 @@ Stages:
    dependency for no accuracy we need here. Edges still inconsistent after the
    optimisation (rotation residual > ``prune_rotation_deg`` or centroid residual >
    ``prune_translation_fraction`` of the radius) are dropped and the graph is solved again.
-5. **Poses** in the frame of the first scan for every scan connected to it; the others are
-   listed in ``disconnected`` and get no pose (never placed at a guess).
+5. **Poses** in the frame of the reference scan for every scan connected to it; the others
+   are listed in ``disconnected`` and get no pose (never placed at a guess). The reference is
+   ``AlignConfig.reference`` when given; by default the first scan of the largest set of scans
+   the verified pairs connect (the first scan itself when its set is as large as any), so one
+   scan that matches nothing, given first, does not leave the others unplaced.
 """
 
 from __future__ import annotations
@@ -76,6 +80,8 @@ class AlignConfig:
             scan's radius.
         max_prune_rounds: edges pruned at most (one per round, each followed by a new solve).
         seed: seeds registration (and the global descriptor's point subsets).
+        reference: index of the scan whose frame the poses are in; None = the first scan of
+            the largest connected set of scans (stage 5).
     """
 
     all_pairs_up_to: int = 12
@@ -87,6 +93,7 @@ class AlignConfig:
     prune_translation_fraction: float = 0.05
     max_prune_rounds: int = 20
     seed: int = 0
+    reference: int | None = None
 
     def __post_init__(self) -> None:
         if self.all_pairs_up_to < 2 or self.neighbours < 1:
@@ -95,6 +102,9 @@ class AlignConfig:
             raise ValueError(f"min_confidence {self.min_confidence} must be in [0, 1]")
         if not (self.robust_scale > 0 and self.prune_rotation_deg > 0 and self.prune_translation_fraction > 0):
             raise ValueError("robust_scale, prune_rotation_deg and prune_translation_fraction must be > 0")
+        if self.reference is not None and (isinstance(self.reference, bool) or not isinstance(self.reference, int)
+                                           or self.reference < 0):
+            raise ValueError(f"reference {self.reference!r} must be a scan index >= 0 or None")
 
 
 @dataclass(frozen=True)
@@ -128,9 +138,11 @@ class AlignmentResult:
 
     Attributes:
         names: one name per scan, in the order given (paths as given, or ``scan_000`` ...).
-        poses: name -> (4, 4) float64 pose mapping that scan into the first scan's frame, for
-            every scan connected to the first one (the first one: the identity).
-        disconnected: names of the scans no kept pair ties to the first scan (no pose).
+        poses: name -> (4, 4) float64 pose mapping that scan into the reference scan's
+            frame, for every scan connected to it (the reference: the identity).
+        reference: the name of the scan whose frame ``poses`` are in (module docstring,
+            stage 5: the first scan unless the verified pairs cut it off from a larger set).
+        disconnected: names of the scans no kept pair ties to the reference (no pose).
         edges: every pair that passed verification, with its residual after optimisation
             (``kept`` False: pruned as inconsistent).
         rejected: the candidate pairs that did not pass: ``{"first", "second", "reason",
@@ -143,6 +155,7 @@ class AlignmentResult:
 
     names: list[str]
     poses: dict[str, np.ndarray]
+    reference: str
     disconnected: list[str]
     edges: list[PoseEdge]
     rejected: list[dict[str, Any]]
@@ -151,8 +164,9 @@ class AlignmentResult:
     timings: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        """``{"poses": {name: 4x4 lists}, "pairs": [used pairs with residuals], "disconnected":
-        [names], "rejected": [...], "pruned": [...], "candidate_pairs": int, "timings_s": {...}}``."""
+        """``{"reference": name, "poses": {name: 4x4 lists}, "pairs": [used pairs with
+        residuals], "disconnected": [names], "rejected": [...], "pruned": [...],
+        "candidate_pairs": int, "timings_s": {...}}``."""
 
         def edge_dict(edge: PoseEdge) -> dict:
             return {
@@ -167,6 +181,7 @@ class AlignmentResult:
             }
 
         return {
+            "reference": self.reference,
             "poses": {name: pose.tolist() for name, pose in self.poses.items()},
             "pairs": [edge_dict(edge) for edge in self.edges if edge.kept],
             "pruned": [edge_dict(edge) for edge in self.edges if not edge.kept],
@@ -194,7 +209,7 @@ def align(
     progress: bool | None = None,
     model_dir: str | os.PathLike | None = None,
 ) -> AlignmentResult:
-    """Bring N scans into the frame of the first one.
+    """Bring N scans into one frame: the first scan's, unless it is cut off (stage 5).
 
     Args:
         scans: N >= 2 point clouds: (Ni, 3) arrays, Open3D PointClouds or file paths, one
@@ -220,6 +235,8 @@ def align(
     timings: dict[str, float] = {}
     start = time.perf_counter()
     clouds, names = _load_scans(scans, names)
+    if config.reference is not None and config.reference >= len(clouds):  # before any registration
+        raise ValueError(f"AlignConfig.reference {config.reference} is not a scan index (there are {len(clouds)} scans)")
     timings["load"] = time.perf_counter() - start
 
     tick = time.perf_counter()
@@ -248,12 +265,14 @@ def align(
     edges, rejected = _verified_edges(pairs, records, config)
     centroids = np.array([cloud.mean(axis=0) for cloud in clouds])
     radii = np.array([np.linalg.norm(cloud - cloud.mean(axis=0), axis=1).max() for cloud in clouds])
-    poses, edges = optimise_pose_graph(len(clouds), edges, centroids, radii, config)
+    reference = config.reference if config.reference is not None else largest_set_reference(len(clouds), edges)
+    poses, edges = optimise_pose_graph(len(clouds), edges, centroids, radii, config, reference)
     timings["graph"] = time.perf_counter() - tick
     timings["total"] = time.perf_counter() - start
     return AlignmentResult(
         names=names,
         poses={names[index]: pose for index, pose in poses.items()},
+        reference=names[reference],
         disconnected=[names[index] for index in range(len(clouds)) if index not in poses],
         edges=edges,
         rejected=rejected,
@@ -342,14 +361,24 @@ def _verified_edges(pairs, records, config: AlignConfig) -> tuple[list[PoseEdge]
     return edges, rejected
 
 
+def largest_set_reference(count: int, edges: list[PoseEdge]) -> int:
+    """The default reference scan (module docstring, stage 5): the lowest index of the largest
+    set of scans ``edges`` connect; of sets of equal size, the one holding the lowest index,
+    so scan 0 whenever its set is as large as any."""
+    labels = _connected_sets(count, edges)
+    sizes = np.bincount(labels)
+    return int(np.flatnonzero(sizes[labels] == sizes.max())[0])
+
+
 def optimise_pose_graph(
     count: int,
     edges: list[PoseEdge],
     centroids: np.ndarray,
     radii: np.ndarray,
     config: AlignConfig = AlignConfig(),
+    reference: int = 0,
 ) -> tuple[dict[int, np.ndarray], list[PoseEdge]]:
-    """Global poses of the scans connected to scan 0 (module docstring, stages 3-5).
+    """Global poses of the scans connected to scan ``reference`` (module docstring, stages 3-5).
 
     Args:
         count: number of scans N.
@@ -358,20 +387,22 @@ def optimise_pose_graph(
         centroids: (N, 3) scan centroids, user units, each in its own scan's frame.
         radii: (N,) scan radii (largest distance to the centroid), user units.
         config: robust loss and pruning thresholds.
+        reference: the scan whose frame the poses are in (its pose: the identity).
 
     Returns:
-        (poses, edges): scan index -> (4, 4) pose into scan 0's frame for the scans connected
-        to scan 0, and every edge with its residuals (NaN outside scan 0's component) and its
-        ``kept`` flag (False: pruned, worst first, one per round).
+        (poses, edges): scan index -> (4, 4) pose into the reference's frame for the scans
+        connected to it, and every edge with its residuals (NaN outside the reference's
+        component) and its ``kept`` flag (False: pruned, worst first, one per round).
     """
     kept = list(edges)
     pruned: list[PoseEdge] = []
-    poses: dict[int, np.ndarray] = {0: np.eye(4)}
+    poses: dict[int, np.ndarray] = {reference: np.eye(4)}
     for round_index in range(config.max_prune_rounds + 1):
-        component = _component_of_first(count, kept)
+        labels = _connected_sets(count, kept)
+        component = [index for index in range(count) if labels[index] == labels[reference]]
         members = set(component)
         used = [edge for edge in kept if edge.first in members and edge.second in members]
-        poses = _solve(component, used, centroids, radii, config) if len(component) > 1 else {0: np.eye(4)}
+        poses = _solve(component, used, centroids, radii, config, reference) if len(component) > 1 else {reference: np.eye(4)}
         used_ids = {id(edge) for edge in used}
         measured = [_with_residuals(edge, poses, centroids) if id(edge) in used_ids else edge for edge in kept]
         in_graph = [edge for edge, old in zip(measured, kept) if id(old) in used_ids]
@@ -395,19 +426,16 @@ def optimise_pose_graph(
     return poses, ordered
 
 
-def _component_of_first(count: int, edges: list[PoseEdge]) -> list[int]:
-    """Scan indices connected to scan 0 by ``edges`` (sorted; scan 0 first)."""
-    if not edges:
-        return [0]
+def _connected_sets(count: int, edges: list[PoseEdge]) -> np.ndarray:
+    """(count,) int labels: scans ``edges`` connect share a label."""
     rows = [edge.first for edge in edges]
     cols = [edge.second for edge in edges]
     graph = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(count, count))
-    _, labels = connected_components(graph, directed=False)
-    return [index for index in range(count) if labels[index] == labels[0]]
+    return connected_components(graph, directed=False)[1]
 
 
-def _initial_poses(component: list[int], edges: list[PoseEdge]) -> dict[int, np.ndarray]:
-    """Poses from the maximum-confidence spanning tree, composed outward from scan 0."""
+def _initial_poses(component: list[int], edges: list[PoseEdge], reference: int) -> dict[int, np.ndarray]:
+    """Poses from the maximum-confidence spanning tree, composed outward from ``reference``."""
     count = max(component) + 1
     weights = lil_matrix((count, count))
     lookup: dict[tuple[int, int], PoseEdge] = {}
@@ -418,8 +446,8 @@ def _initial_poses(component: list[int], edges: list[PoseEdge]) -> dict[int, np.
             lookup[(edge.first, edge.second)] = edge
     tree = minimum_spanning_tree(weights.tocsr())
     tree = tree + tree.T
-    order, predecessors = breadth_first_order(tree, 0, directed=False, return_predecessors=True)
-    poses = {0: np.eye(4)}
+    order, predecessors = breadth_first_order(tree, reference, directed=False, return_predecessors=True)
+    poses = {reference: np.eye(4)}
     for index in order[1:]:
         parent = int(predecessors[index])
         if (parent, index) in lookup:  # parent = first: P_index = P_parent @ T
@@ -429,17 +457,17 @@ def _initial_poses(component: list[int], edges: list[PoseEdge]) -> dict[int, np.
     return poses
 
 
-def _solve(component, edges, centroids, radii, config: AlignConfig) -> dict[int, np.ndarray]:
-    """Robust least squares over the poses of ``component`` (scan 0 fixed at the identity).
+def _solve(component, edges, centroids, radii, config: AlignConfig, reference: int) -> dict[int, np.ndarray]:
+    """Robust least squares over the poses of ``component`` (``reference`` fixed at the identity).
 
-    Each scan's frame is centred on its centroid (and the result frame on scan 0's), so a
+    Each scan's frame is centred on its centroid (and the result frame on the reference's), so a
     pose's translation is where that scan's centroid lands, of the scene's size wherever the
     scans sit, and an edge's translation residual is its centroid's displacement.
     """
     from scipy.optimize import least_squares  # deferred: importing the package stays cheap
 
-    initial = _initial_poses(component, edges)
-    free = [index for index in component if index != 0]
+    initial = _initial_poses(component, edges, reference)
+    free = [index for index in component if index != reference]
     slot = {index: k for k, index in enumerate(free)}
 
     def centre(index):  # scan frame, centred -> scan frame
@@ -452,7 +480,7 @@ def _solve(component, edges, centroids, radii, config: AlignConfig) -> dict[int,
         move[:3, 3] = -centroids[index]
         return move
 
-    x0 = np.concatenate([_to_vector(uncentre(0) @ initial[index] @ centre(index)) for index in free])
+    x0 = np.concatenate([_to_vector(uncentre(reference) @ initial[index] @ centre(index)) for index in free])
     relative_inverse = [
         np.linalg.inv(uncentre(edge.first) @ edge.transformation @ centre(edge.second)) for edge in edges
     ]
@@ -480,14 +508,14 @@ def _solve(component, edges, centroids, radii, config: AlignConfig) -> dict[int,
     sparsity = lil_matrix((6 * len(edges), 6 * len(free)), dtype=int)
     for k, edge in enumerate(edges):
         for index in (edge.first, edge.second):
-            if index != 0:
+            if index != reference:
                 sparsity[6 * k : 6 * k + 6, 6 * slot[index] : 6 * slot[index] + 6] = 1
     solution = least_squares(
         residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=config.robust_scale, method="trf", x_scale="jac"
     )
-    poses = {0: np.eye(4)}
+    poses = {reference: np.eye(4)}
     for index in free:
-        poses[index] = centre(0) @ _from_vector(solution.x[6 * slot[index] : 6 * slot[index] + 6]) @ uncentre(index)
+        poses[index] = centre(reference) @ _from_vector(solution.x[6 * slot[index] : 6 * slot[index] + 6]) @ uncentre(index)
     return poses
 
 
@@ -525,7 +553,7 @@ def merge_scans(
             diagonal (a few hundred thousand points at most for a surface).
 
     Returns:
-        (points, scan): (M, 3) float64 points in the first scan's frame, and (M,) int32 the
+        (points, scan): (M, 3) float64 points in the reference scan's frame, and (M,) int32 the
         index of the scan each point came from.
     """
     clouds, _ = _load_scans(scans, result.names)

@@ -1,5 +1,6 @@
-"""align(): synthetic scans of the Bunny mesh with known poses come back in the first scan's
-frame, a scan that overlaps nothing is reported disconnected; the pose graph alone recovers
+"""align(): synthetic scans of the Bunny mesh with known poses come back in one scan's frame,
+a scan that overlaps nothing is reported disconnected (and, given first, does not leave the
+others unplaced); the pose graph alone recovers
 poses from noisy edges and prunes a wrong one; candidate graphs stay below N^2 / 2.
 (About 30 s on 2 cores, nearly all of it the pairwise registrations.)"""
 
@@ -16,6 +17,7 @@ from logdesc_rt.align import (
     PoseEdge,
     align,
     candidate_pairs,
+    largest_set_reference,
     merge_scans,
     optimise_pose_graph,
     write_merged,
@@ -61,46 +63,50 @@ def mesh() -> np.ndarray:
 
 
 def test_align_recovers_known_poses_and_reports_the_scan_that_overlaps_nothing(mesh, tmp_path):
+    """The scan that overlaps nothing is given first: the others are still placed, in the
+    frame of the first scan of their connected set (a.ply), and the result says so."""
     scans, truth = bunny_scans(mesh, [0, 40, 80, 120])
     elsewhere = np.random.default_rng(1).normal(size=(3000, 3)) * [0.05, 0.02, 0.01] + [2.0, 0.0, 0.0]
-    names = ["a.ply", "b.ply", "c.ply", "d.ply", "stray.ply"]
+    names = ["stray.ply", "a.ply", "b.ply", "c.ply", "d.ply"]
     pairs_file = tmp_path / "pairs.jsonl"
-    result = align([*scans, elsewhere], names=names, workers=2, progress=False, pairs_output=pairs_file)
+    result = align([elsewhere, *scans], names=names, workers=2, progress=False, pairs_output=pairs_file)
 
     radius = np.linalg.norm(scans[0] - scans[0].mean(axis=0), axis=1).max()
     assert result.disconnected == ["stray.ply"]
-    assert set(result.poses) == set(names[:4])
+    assert result.reference == "a.ply"
+    assert set(result.poses) == set(names[1:])
     np.testing.assert_array_equal(result.poses["a.ply"], np.eye(4))
-    for name, true_pose in zip(names, truth):
+    for name, true_pose in zip(names[1:], truth):
         pose = result.poses[name]
         assert rotation_error_deg(pose[:3, :3], true_pose[:3, :3]) < 1.0, name
         # 1 degree turns a point at the scan's radius by 1.75 % of it: the translation's bound
         # matches the rotation's.
         assert np.linalg.norm(pose[:3, 3] - true_pose[:3, 3]) < 0.02 * radius, name
     assert result.candidate_pairs == 10
-    assert {(item["first"], item["second"]) for item in result.rejected} >= {(k, 4) for k in range(4)}
+    assert {(item["first"], item["second"]) for item in result.rejected} >= {(0, k) for k in range(1, 5)}
 
     payload = json.loads(json.dumps(result.to_json()))
-    assert set(payload["poses"]) == set(names[:4]) and payload["disconnected"] == ["stray.ply"]
+    assert set(payload["poses"]) == set(names[1:]) and payload["disconnected"] == ["stray.ply"]
+    assert payload["reference"] == "a.ply"
     assert payload["pairs"] and all(p["residual_rotation_deg"] is not None for p in payload["pairs"])
     assert all("stray.ply" not in (p["source"], p["target"]) for p in payload["pairs"])
 
     # Resumed from its pairs file, align registers nothing again and places the scans the same.
-    again = align([*scans, elsewhere], names=names, workers=2, progress=False, pairs_output=pairs_file)
+    again = align([elsewhere, *scans], names=names, workers=2, progress=False, pairs_output=pairs_file)
     assert len(pairs_file.read_text().splitlines()) == 10
     assert again.records == result.records
-    for name in names[:4]:
+    for name in names[1:]:
         np.testing.assert_array_equal(again.poses[name], result.poses[name])
 
-    points, scan = merge_scans([*scans, elsewhere], result, voxel_size=0.004)
-    assert set(np.unique(scan)) == {0, 1, 2, 3}, "the disconnected scan is not merged"
+    points, scan = merge_scans([elsewhere, *scans], result, voxel_size=0.004)
+    assert set(np.unique(scan)) == {1, 2, 3, 4}, "the disconnected scan is not merged"
     assert len(points) < sum(len(s) for s in scans)
-    # The merged scans overlap: every scan's points lie on the first scan's surface.
+    # The merged scans overlap: b's points lie on a's (the reference's) surface.
     from scipy.spatial import cKDTree
 
-    distances, _ = cKDTree(scans[0]).query(points[scan == 1])
+    distances, _ = cKDTree(scans[0]).query(points[scan == 2])
     assert np.median(distances) < 0.002
-    written = write_merged(tmp_path / "merged.ply", [*scans, elsewhere], result, voxel_size=0.004)
+    written = write_merged(tmp_path / "merged.ply", [elsewhere, *scans], result, voxel_size=0.004)
     assert written == len(points)
     np.testing.assert_array_equal(read_point_attributes(tmp_path / "merged.ply")["scan"], scan)
 
@@ -153,6 +159,22 @@ def test_candidate_graph_is_all_pairs_for_few_scans_and_sparse_but_connected_for
     assert connected_components(graph, directed=False)[0] == 1
 
 
+def test_the_default_reference_is_the_first_scan_of_the_largest_connected_set():
+    rng = np.random.default_rng(5)
+    poses = [_rigid(rng, 30.0, 0.1) for _ in range(6)]
+    # Scan 0 alone, scans 1-3 connected, 4-5 connected: the reference is scan 1.
+    edges = [_edge(1, 2, poses, rng), _edge(2, 3, poses, rng), _edge(4, 5, poses, rng)]
+    assert largest_set_reference(6, edges) == 1
+    # Sets of equal size: the one holding the lowest index, so scan 0 when it is in one.
+    assert largest_set_reference(6, [_edge(0, 5, poses, rng), _edge(1, 2, poses, rng)]) == 0
+    assert largest_set_reference(6, []) == 0
+    found, _ = optimise_pose_graph(6, edges, np.zeros((6, 3)), np.full(6, 0.1), reference=1)
+    assert sorted(found) == [1, 2, 3]
+    np.testing.assert_array_equal(found[1], np.eye(4))
+    expected = np.linalg.inv(poses[1]) @ poses[3]
+    assert rotation_error_deg(found[3][:3, :3], expected[:3, :3]) < 0.5
+
+
 def test_bad_inputs_are_named():
     cloud = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(ValueError, match="at least 2 scans"):
@@ -161,3 +183,7 @@ def test_bad_inputs_are_named():
         align([cloud, cloud + 1], names=["x", "x"])
     with pytest.raises(ValueError, match="min_confidence"):
         AlignConfig(min_confidence=1.5)
+    with pytest.raises(ValueError, match="reference"):
+        AlignConfig(reference=-1)
+    with pytest.raises(ValueError, match="reference 5 is not a scan index"):
+        align([cloud, cloud + 1], config=AlignConfig(reference=5))

@@ -311,6 +311,7 @@ def test_align_writes_poses_merged_cloud_and_overview(many_files, tmp_path):
     assert "stray.npy: DISCONNECTED" in completed.stdout and "disconnected" in completed.stderr
     result = json.loads(out.read_text())
     assert set(result["poses"]) == set(scans[:2]) and result["disconnected"] == [scans[2]]
+    assert result["reference"] == scans[0] and f"{scans[0]}: placed (reference)" in completed.stdout
     np.testing.assert_array_equal(result["poses"][scans[0]], np.eye(4))
     # b's points into a's frame: the inverse of the pair's source -> target pose.
     truth = np.linalg.inv(pair.true_transformation)
@@ -322,10 +323,16 @@ def test_align_writes_poses_merged_cloud_and_overview(many_files, tmp_path):
     assert len(scan_index) < 2 * 768, "the merged cloud is voxel-thinned"
     if has_matplotlib:
         assert (tmp_path / "overview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # Rerun from the pairs file: nothing registered again, --allow-failure exits 0.
-    again = run_cli("align", *scans, "--out", str(out), "--pairs", str(pairs), "--workers", "0", "--allow-failure")
+    # Rerun from the pairs file into b's frame: nothing registered again (the records are
+    # kept: still 3), the same relative pose, --allow-failure exits 0.
+    again = run_cli("align", *scans, "--out", str(out), "--pairs", str(pairs), "--workers", "0",
+                    "--reference", scans[1], "--allow-failure")
     assert again.returncode == 0, again.stderr
-    assert json.loads(out.read_text())["poses"] == result["poses"]
+    assert len(_jsonl(pairs)) == 3
+    in_b = json.loads(out.read_text())
+    assert in_b["reference"] == scans[1]
+    np.testing.assert_array_equal(in_b["poses"][scans[1]], np.eye(4))
+    np.testing.assert_allclose(in_b["poses"][scans[0]], np.linalg.inv(result["poses"][scans[1]]), atol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -337,6 +344,7 @@ def test_align_writes_poses_merged_cloud_and_overview(many_files, tmp_path):
         (("{a}", "{b}", "--out", "{tmp}/poses.txt"), "unsupported suffix", ""),
         (("{a}", "{b}", "--merged", "{tmp}/merged.off"), "unsupported suffix", ""),
         (("{a}", "{b}", "--voxel", "-1"), "--voxel", ""),
+        (("{a}", "{b}", "--reference", "{tmp}/c.ply"), "not one of the scans", ""),
         (("{a}", "{b}", "--pairs", "{tmp}/no/folder/p.jsonl"), "does not exist", ""),
         (("{a}", "{b}", "--plot", "{tmp}/o.png"), "matplotlib", "import sys; sys.modules['matplotlib'] = None"),
     ],

@@ -50,13 +50,14 @@ LAS/LAZ and E57 with the optional extras: pip install "logdesc-rt[las]" / "logde
 
 working size: clouds larger than the model's training size (1024 points) are subsampled to it
 (farthest-point sampling) for the networks; verification, ICP, fitness and --write-aligned use
-the full clouds. Memory grows with the square of the working size (about 0.4 GB at 1024).
+the full clouds. The networks' memory grows with the working size (about 0.1 GB at 1024).
 
 success: the pose was verified on the full clouds and the calibrated confidence reached its
 threshold (calibrated on validation pairs to be right, i.e. rotation error < 5 degrees and
 translation error < 5 % of the radius, at least 95 % of the time when claimed;
-benchmarks/results/success_calibration.md). The model was trained on relative rotations up to
-45 degrees per axis: beyond that, expect failures, which the flag reports.
+benchmarks/results/success_calibration.md). The bundled network is invariant to rigid motion
+by construction: relative rotations of any size are alike to it. Small overlaps, symmetric
+shapes and sparse or differently sampled scans fail more often; the flag reports it.
 
 exit codes: 0 success; 2 error (nothing registered); 3 registered but not a success
 (--allow-failure: 0).
@@ -484,10 +485,15 @@ def _command_align(args) -> int:
     _check_backend(args)
     runtime_config = _runtime_config(args)
     refine = AlignConfig.refine if args.refine is None else (None if args.refine == "none" else args.refine)
-    config = AlignConfig(refine=refine, seed=0 if args.seed is None else args.seed)
+    reference = None
+    if args.reference is not None:
+        if str(args.reference) not in names:
+            raise ValueError(f"--reference {args.reference}: not one of the scans given")
+        reference = names.index(str(args.reference))
+    config = AlignConfig(refine=refine, seed=0 if args.seed is None else args.seed, reference=reference)
 
     # 2. The work.
-    progress(f"aligning {len(names)} scans into the frame of {names[0]}")
+    progress(f"aligning {len(names)} scans")
     result = align(
         args.scans,
         names=names,
@@ -502,7 +508,7 @@ def _command_align(args) -> int:
         model_dir=args.model,
     )
     progress(f"{result.candidate_pairs} pairs registered, {sum(edge.kept for edge in result.edges)} used; "
-             f"writing {args.out}")
+             f"poses in the frame of {result.reference}; writing {args.out}")
     args.out.write_text(json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
     if args.merged is not None or args.plot is not None:
         points, scan = merge_scans(args.scans, result, args.voxel)
@@ -519,12 +525,13 @@ def _command_align(args) -> int:
 
     # 3. One line per scan on stdout, the verdict in the exit code.
     for name in names:
-        print(f"{name}: {'placed' if name in result.poses else 'DISCONNECTED'}")
+        verdict = "placed" if name in result.poses else "DISCONNECTED"
+        print(f"{name}: {verdict}{' (reference)' if name == result.reference else ''}")
     if result.disconnected:
         if args.allow_failure:
             return EXIT_OK
         print(f"logdesc-rt: {len(result.disconnected)} of {len(names)} scans are disconnected (no verified pair ties "
-              f"them to {names[0]}): {', '.join(result.disconnected)}. Exit code {EXIT_NOT_SUCCESS}; "
+              f"them to {result.reference}): {', '.join(result.disconnected)}. Exit code {EXIT_NOT_SUCCESS}; "
               "--allow-failure exits 0.", file=sys.stderr)
         return EXIT_NOT_SUCCESS
     return EXIT_OK
@@ -660,17 +667,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     align = commands.add_parser(
         "align",
-        help="align a set of scans into the frame of the first one (pose graph)",
+        help="align a set of scans into one frame (pose graph)",
         description="Register candidate pairs of SCANs (all pairs up to 12 scans, else nearest scans by a global "
                     "descriptor), keep the verified ones, solve a pose graph and write each scan's 4x4 pose into "
-                    "the first scan's frame to --out (JSON: poses, the pairs used with their residuals, "
-                    "disconnected scans). Scans no verified pair ties to the first are reported, never placed.",
+                    "the reference scan's frame to --out (JSON: the reference, poses, the pairs used with their "
+                    "residuals, disconnected scans). The reference is --reference, else the first scan of the "
+                    "largest set the verified pairs connect (the first scan given, unless the pairs cut it off "
+                    "from a larger set). Scans no verified pair ties to the reference are reported, never placed.",
         epilog="exit codes: 0 every scan placed; 3 some scan disconnected (--allow-failure: 0; poses.json is "
                "written anyway); 2 bad arguments, unreadable scan, unwritable output (nothing registered).",
     )
     align.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help=f"two or more point-cloud files ({formats})")
     align.add_argument("--out", type=Path, required=True, metavar="POSES.json",
-                       help='{"poses": {scan: 4x4}, "pairs": [...], "disconnected": [...], ...}')
+                       help='{"reference": scan, "poses": {scan: 4x4}, "pairs": [...], "disconnected": [...], ...}')
+    align.add_argument("--reference", type=Path, default=None, metavar="SCAN",
+                       help="the scan whose frame the poses are in, one of the SCANs (default: see above)")
     align.add_argument("--merged", type=Path, default=None, metavar="MERGED.ply",
                        help="write the aligned scans as one voxel-thinned cloud with a per-point 'scan' index")
     align.add_argument("--voxel", type=float, default=None, metavar="V",
