@@ -236,7 +236,9 @@ def align(
     start = time.perf_counter()
     clouds, names = _load_scans(scans, names)
     if config.reference is not None and config.reference >= len(clouds):  # before any registration
-        raise ValueError(f"AlignConfig.reference {config.reference} is not a scan index (there are {len(clouds)} scans)")
+        raise ValueError(
+            f"AlignConfig.reference {config.reference} is not a scan index (there are {len(clouds)} scans)"
+        )
     timings["load"] = time.perf_counter() - start
 
     tick = time.perf_counter()
@@ -402,7 +404,10 @@ def optimise_pose_graph(
         component = [index for index in range(count) if labels[index] == labels[reference]]
         members = set(component)
         used = [edge for edge in kept if edge.first in members and edge.second in members]
-        poses = _solve(component, used, centroids, radii, config, reference) if len(component) > 1 else {reference: np.eye(4)}
+        if len(component) > 1:
+            poses = _solve(component, used, centroids, radii, config, reference)
+        else:
+            poses = {reference: np.eye(4)}
         used_ids = {id(edge) for edge in used}
         measured = [_with_residuals(edge, poses, centroids) if id(edge) in used_ids else edge for edge in kept]
         in_graph = [edge for edge, old in zip(measured, kept) if id(old) in used_ids]

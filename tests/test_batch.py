@@ -146,7 +146,8 @@ def test_resume_keeps_a_too_few_matches_verdict_and_retries_other_errors(pairs, 
         handle.write(json.dumps({"id": "first", "source": None, "target": None, "ok": False,
                                  "error": {"type": "WorkerCrashed", "message": "a worker process died"}}) + "\n")
     seen: list[str] = []
-    again = register_many(work, workers=0, output=output, seed=0, progress=False, on_record=lambda r: seen.append(r["id"]))
+    again = register_many(work, workers=0, output=output, seed=0, progress=False,
+                          on_record=lambda r: seen.append(r["id"]))
     assert seen == ["first"], "the verdict is kept, the crash retried"
     assert again[0] == first[0] and again[1]["ok"]
     assert [record["id"] for record in _lines(output)] == ["unmatched", "first", "first"]
