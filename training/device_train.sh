@@ -12,21 +12,24 @@
 # checkpoint, evaluate with `python -m training.evaluate ... --split val [--any-orientation]`.
 #
 # Environment overrides (defaults in brackets), so the same script is tested on the CPU:
-#   RESUME [training/checkpoints/v3.pt]  DEVICE [cuda]  MINUTES [9]  BATCH [48]
-#   WORKERS [4]  DATA [.device_pack]  OUT [$OUT, or runs/device]  EXTRA [--amp]
-# The schedule is the CPU run's from its step 1103 to 6022 (cosine to step 8000); the CPU run then
-# ended its cosine at step 7500. Continuing past that needs a new cycle, chosen through EXTRA
-# (later flags win: --max-steps, --decay-steps, --lr); no such cycle has been tried yet. The protocol mix is the CPU run's since its step 3825: 55 % resampled
-# pairs (each cloud its own samples, as real scans; 30 % from step 1206: at step 1003 v3 registered
-# 4 % of resampled validation pairs, v2 92 %; at step 2208 19.5 %), 35 % partial, and few clean or
-# noisy ones (where v3 already beats v2; reasons in training/checkpoints/v3_cpu_notes.json); the
-# validation pairs stay those of the mix from step 309, so the log stays comparable.
+#   RESUME [training/checkpoints/v3_cycle2.pt if committed, else v3.pt]  DEVICE [cuda]  MINUTES [9]
+#   BATCH [48]  WORKERS [4]  DATA [.device_pack]  OUT [$OUT, or runs/device]  EXTRA [--amp]
+# The schedule and protocol mix are those of v3's second CPU cycle (training/checkpoints/
+# v3_cycle2_notes.json says why): a warm restart at step 7500 (--cycle-start), 50 warm-up steps,
+# cosine over 2500 steps from lr 5e-4; 65 % resampled pairs (each cloud its own samples, as real
+# scans: v3's weakest case), 28 % partial, few clean or noisy ones (where v3 already beats v2).
+# The steps count batches, and a GPU batch holds 6x the CPU's 8 pairs: change the cycle through
+# EXTRA (later flags win: --cycle-start, --max-steps, --decay-steps, --lr) for a cycle of its own.
+# Not yet run as it stands: dry-run it on the CPU first (DEVICE=cpu MINUTES=2 BATCH=4 WORKERS=0).
+# The validation pairs stay those of the mix from step 309, so the log stays comparable.
 # The geometry runs on the GPU with the batch (--geometry-on-device: the torch port of the
 # NumPy reference, tests/test_geometry_torch.py), so a few workers only draw pairs.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-resume=${RESUME:-training/checkpoints/v3.pt}
+default_resume=training/checkpoints/v3_cycle2.pt
+[ -f "$default_resume" ] || default_resume=training/checkpoints/v3.pt
+resume=${RESUME:-$default_resume}
 out=${OUT:-runs/device}/run
 mkdir -p "$out"
 python -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
@@ -35,8 +38,8 @@ python -m training.train \
     --device "${DEVICE:-cuda}" --geometry-on-device --workers "${WORKERS:-4}" \
     --batch-size "${BATCH:-48}" --points-per-cloud 1024 \
     --max-minutes "${MINUTES:-9}" --checkpoint-minutes 2 --val-every 300 --val-pairs 128 \
-    --max-steps 8000 --decay-steps 8000 --lr 1e-3 --warmup-steps 100 \
-    --protocol-mix clean:0.02,noisy:0.08,partial:0.35,resampled:0.2,resampled_partial:0.35 \
+    --cycle-start 7500 --max-steps 10000 --decay-steps 2500 --lr 5e-4 --warmup-steps 50 \
+    --protocol-mix clean:0.02,noisy:0.05,partial:0.28,resampled:0.25,resampled_partial:0.4 \
     --val-protocol-mix clean:0.1,noisy:0.3,partial:0.6 \
     --data-root "${DATA:-.device_pack}" --no-progress --log-every 20 ${EXTRA---amp}
 ls -la "$out"
