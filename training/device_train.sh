@@ -20,7 +20,9 @@
 # scans: v3's weakest case), 28 % partial, few clean or noisy ones (where v3 already beats v2).
 # The steps count batches, and a GPU batch holds 6x the CPU's 8 pairs: change the cycle through
 # EXTRA (later flags win: --cycle-start, --max-steps, --decay-steps, --lr) for a cycle of its own.
-# Not yet run as it stands: dry-run it on the CPU first (DEVICE=cpu MINUTES=2 BATCH=4 WORKERS=0).
+# Dry-run on the CPU (session 10): PATH=.venv/bin:$PATH DATA=../shared/data DEVICE=cpu MINUTES=1
+# BATCH=2 WORKERS=0 OUT=runs/device_dry EXTRA= bash training/device_train.sh resumed v3.pt, ran
+# 72 steps with the lr warming up from 1 % to 5e-4 over steps 7500-7550, and wrote last.pt.
 # The validation pairs stay those of the mix from step 309, so the log stays comparable.
 # The geometry runs on the GPU with the batch (--geometry-on-device: the torch port of the
 # NumPy reference, tests/test_geometry_torch.py), so a few workers only draw pairs.
