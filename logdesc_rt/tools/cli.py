@@ -486,10 +486,11 @@ def _command_align(args) -> int:
     runtime_config = _runtime_config(args)
     refine = AlignConfig.refine if args.refine is None else (None if args.refine == "none" else args.refine)
     reference = None
-    if args.reference is not None:
-        if str(args.reference) not in names:
+    if args.reference is not None:  # the same file however its path is spelled
+        resolved = [scan.resolve() for scan in args.scans]
+        if args.reference.resolve() not in resolved:
             raise ValueError(f"--reference {args.reference}: not one of the scans given")
-        reference = names.index(str(args.reference))
+        reference = resolved.index(args.reference.resolve())
     config = AlignConfig(refine=refine, seed=0 if args.seed is None else args.seed, reference=reference)
 
     # 2. The work.
