@@ -1,7 +1,7 @@
 """align(): synthetic scans of the Bunny mesh with known poses come back in one scan's frame,
 a scan that overlaps nothing is reported disconnected (and, given first, does not leave the
-others unplaced); the pose graph alone recovers
-poses from noisy edges and prunes a wrong one; candidate graphs stay below N^2 / 2.
+others unplaced); the pose graph alone recovers poses from noisy edges and prunes a wrong
+one; candidate graphs stay below N^2 / 2.
 (About 30 s on 2 cores, nearly all of it the pairwise registrations.)"""
 
 from __future__ import annotations

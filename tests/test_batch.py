@@ -135,7 +135,7 @@ def test_resume_keeps_a_too_few_matches_verdict_and_retries_other_errors(pairs, 
     """A RegistrationError is the pipeline's verdict on the pair: resuming would only repeat
     it (a network pass each); an error that may not recur (here a worker crash) is retried."""
     rng = np.random.default_rng(0)
-    # Two clouds with no surface in common: random blobs far apart match nothing.
+    # A flat Gaussian blob against uniform noise in a cube: no surface in common, no 3 matches.
     blob = rng.normal(size=(600, 3)) * [0.3, 0.05, 0.01]
     noise = rng.uniform(-1, 1, size=(600, 3))
     work = [("unmatched", blob, noise), ("first", pairs[0][1], pairs[0][2])]
