@@ -390,3 +390,15 @@ def test_scanner_format_without_its_library_fails_before_the_work(cloud_files, t
                         str(tmp_path / "poses.json"), prelude=hide)
     assert completed.returncode == 2 and extra in completed.stderr, completed.stderr
     assert "aligning" not in completed.stderr
+
+
+def test_the_package_version_has_one_value():
+    """pyproject.toml and logdesc_rt.__version__ (what --version prints) say the same."""
+    from pathlib import Path
+
+    from logdesc_rt import __version__
+
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    assert pyproject["project"]["version"] == __version__
