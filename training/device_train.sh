@@ -4,8 +4,8 @@
 #
 # Here, first (the device tool carries at most 64 MiB, so the shared data travels packed):
 #     python training/pack_data.py .device_pack --decimals 4   # about 27 MiB, training shapes only
-# (the working tree travels too, and tree + .device_pack must stay under 64 MiB: about 61 MiB
-# at this commit; check with `git ls-files -z | xargs -0 du -cb | tail -1; du -sb .device_pack`)
+# (the working tree travels too, and tree + .device_pack must stay under 64 MiB: about
+# 56 MB in session 10, 29 MB of it the tree; check with `git ls-files -z | xargs -0 du -cb | tail -1; du -sb .device_pack`)
 # Then, through the device tool, from the repository root (carry .device_pack):
 #     bash training/device_train.sh
 # and afterwards, here: copy $OUT/run/last.pt (and best.pt, log.jsonl) next to the committed
