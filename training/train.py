@@ -203,7 +203,7 @@ def atomic_torch_save(obj, path: Path) -> None:
 
 def lr_factor(step: int, args) -> float:
     """Multiplier of the base lr at optimiser step ``step`` (warm-up, then the decay), counted
-    from the cycle's start (``--cycle-start``; checkpoints from before the option have none)."""
+    from the cycle's start (``--cycle-start``; 0 when ``args`` lacks it, as a hand-built Namespace may)."""
     cycle_start = getattr(args, "cycle_start", 0)
     step = max(0, step - cycle_start)
     if args.warmup_steps > 0 and step < args.warmup_steps:
