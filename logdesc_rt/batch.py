@@ -129,6 +129,7 @@ def run_pair(registrar, spec: WorkerSpec, job: PairJob, source, target) -> dict:
         "transformation_before_refinement",
         "success",
         "confidence",
+        "reason",
         "fitness",
         "inlier_rmse",
         "max_correspondence_distance",

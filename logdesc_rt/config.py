@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 _Config = TypeVar("_Config")
 
 # Edge-feature layouts and their channel counts (see GeometryConfig.edge_layout).
-EDGE_CHANNELS = {"paper": 15, "invariant": 11}
+EDGE_CHANNELS = {"paper": 15, "invariant": 11, "chiral": 13}
 EDGE_LAYOUTS = tuple(EDGE_CHANNELS)
 NORMAL_SOURCES = ("umbrella", "pca")
 
@@ -55,6 +55,8 @@ class GeometryConfig(_DictMixin):
             frame, the neighbour's normal in the signed LRF; :mod:`.geometry.edge_features`).
             ``"invariant"``: point-pair features that are unchanged by any rigid motion and by
             the sign of every normal (:mod:`.geometry.invariant_features`).
+            ``"chiral"``: those 11 and two that change sign under a reflection (still
+            invariant to rigid motions and normal signs), so mirror images differ (v4).
         normals: which unit normal per point is handed to the network.
             ``"umbrella"``: the paper's triangle-umbrella normal.
             ``"pca"``: the LRF's normal axis w (PCA over the ``pca_radius`` neighbourhood), the
@@ -111,14 +113,25 @@ class NormalizationConfig(_DictMixin):
 
     Attributes:
         target_radius: after normalisation the larger of the two clouds' radii (largest
-            distance of a point from its cloud's centroid) equals this.
+            distance of a non-stray point from the centroid of its cloud's non-stray points)
+            equals this.
+        stray_neighbours: k of the stray-point test (:mod:`.outliers`): a point is stray when
+            its k-th nearest neighbour is far; clumps of fewer than k points count as stray.
+        stray_ratio: ... farther than this many times the cloud's median k-th neighbour
+            distance. 0 turns the test off (every point counts, as before v4).
     """
 
     target_radius: float = 1.0
+    stray_neighbours: int = 6
+    stray_ratio: float = 6.0
 
     def __post_init__(self) -> None:
         if not self.target_radius > 0:
             raise ValueError(f"NormalizationConfig.target_radius must be > 0, got {self.target_radius}")
+        if self.stray_neighbours < 1:
+            raise ValueError(f"NormalizationConfig.stray_neighbours must be >= 1, got {self.stray_neighbours}")
+        if not (self.stray_ratio == 0 or self.stray_ratio > 1):
+            raise ValueError(f"NormalizationConfig.stray_ratio must be 0 (off) or > 1, got {self.stray_ratio}")
 
 
 @dataclass(frozen=True)

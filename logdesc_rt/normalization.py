@@ -9,7 +9,9 @@ motion stays rigid):
 with c the centroid of each cloud and s chosen so that the larger of the two clouds' radii
 (largest distance of a point from its own centroid) becomes ``target_radius``. Centring each
 cloud on its own centroid removes most of the translation before the network sees the pair.
-Training applies the very same mapping to its pairs, so the network never sees anything else.
+Stray points (:mod:`.outliers`: far from every surface) count in neither the centroid nor the
+radius, so one return 100 radii away no longer shrinks the object to a speck. Training applies
+the very same mapping to its pairs, so the network never sees anything else.
 
 If the network's pose maps x' to y' = R x' + t', then in the user's frame
 
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import NormalizationConfig
+from .outliers import stray_point_mask
 from .validation import as_points
 
 
@@ -46,14 +49,19 @@ class PairNormalization:
     def fit(
         cls, source, target, config: NormalizationConfig = NormalizationConfig()
     ) -> "PairNormalization":
-        """Choose the centres and the shared scale for a pair of (N, 3) / (M, 3) clouds."""
+        """Choose the centres and the shared scale for a pair of (N, 3) / (M, 3) clouds.
+
+        Stray points (``config.stray_*``) are left out of both the centres and the radius.
+        """
         source = as_points(source, name="source")
         target = as_points(target, name="target")
-        source_centre = source.mean(axis=0)
-        target_centre = target.mean(axis=0)
+        source_kept = source[~stray_point_mask(source, config)]
+        target_kept = target[~stray_point_mask(target, config)]
+        source_centre = source_kept.mean(axis=0)
+        target_centre = target_kept.mean(axis=0)
         radius = max(
-            np.linalg.norm(source - source_centre, axis=1).max(),
-            np.linalg.norm(target - target_centre, axis=1).max(),
+            np.linalg.norm(source_kept - source_centre, axis=1).max(),
+            np.linalg.norm(target_kept - target_centre, axis=1).max(),
         )
         # A single point (radius 0) has no scale; keep 1 rather than divide by zero. Callers that
         # need geometry reject such clouds themselves.

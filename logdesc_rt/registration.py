@@ -49,7 +49,7 @@ from .pose import evaluate_registration
 from .pose.evaluation import check_rigid_transformation
 from .refinement import IcpResult, icp
 from .verification import CANDIDATE_ESTIMATORS, PoseVerifier, VerificationResult, candidate_poses, estimate_pose
-from .sampling import farthest_point_sampling, voxel_downsample
+from .sampling import working_subset
 from .validation import as_points, check_not_degenerate
 
 MIN_MATCHES = 3  # a rigid transform needs three non-collinear pairs
@@ -80,8 +80,9 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs, user units; NaN when there are none
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
-        pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k" or
-            "init" (the caller's initial guess).
+        pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
+            "init" (the caller's initial guess), or "none" (no pose could be estimated: the
+            identity, see ``reason``).
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
         icp: how ICP ended (iterations, converged, stop reason, its fitness / RMSE), or None
@@ -92,6 +93,10 @@ class RegistrationResult:
         source_points_used, target_points_used: points the network saw per cloud.
         timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
             refinement (if any), evaluation, and total (their sum).
+        reason: None for a success; otherwise why not, in words (too few matches, no
+            candidate pose, or a confidence below the threshold). A pair that could not be
+            registered at all returns the identity (``pose_estimator`` "none") with fitness
+            and RMSE evaluated at it.
     """
 
     transformation: np.ndarray
@@ -112,6 +117,7 @@ class RegistrationResult:
     confidence: float = 0.0
     verification: VerificationResult | None = None
     config: RuntimeConfig | None = None
+    reason: str | None = None
 
     @property
     def rotation(self) -> np.ndarray:
@@ -129,6 +135,7 @@ class RegistrationResult:
             "transformation": self.transformation.tolist(),
             "success": self.success,
             "confidence": self.confidence,
+            "reason": self.reason,
             "fitness": self.fitness,
             "inlier_rmse": _finite_or_none(self.inlier_rmse),
             "max_correspondence_distance": self.max_correspondence_distance,
@@ -396,8 +403,10 @@ class Registrar:
         Raises:
             InvalidPointCloudError (and subclasses), PointCloudFileError: bad clouds.
             ValueError: bad options, or ``init`` not a rigid (4, 4) transform.
-            RegistrationError: fewer than 3 mutual matches and no ``init`` (no overlap, or far
-                out of the training distribution).
+
+        A valid pair that cannot be registered (fewer than 3 mutual matches: no overlap, or far
+        out of the training distribution; degenerate matches) is not an exception: the result
+        has ``success=False``, confidence 0, the identity and a ``reason``.
         """
         config = self.call_config(
             config,
@@ -446,15 +455,22 @@ class Registrar:
         """Candidates from the matches (and ``initial``), verified; the best kept, refined."""
         timings = dict(pair.timings)
         with _timed(timings, "pose"):
-            candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES or initial is None else []
+            candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES else []
             if initial is not None:
                 candidates.append(("init", initial))
+        if len(pair.matches) < MIN_MATCHES and initial is None:
+            return self._unregistered(
+                pair, config, timings,
+                f"too few matches: the network found {len(pair.matches)} mutual matches, a pose needs at least "
+                f"{MIN_MATCHES} (the clouds may not overlap, or differ too much from the model's training data)",
+            )
         if config.estimator != "auto" and config.estimator not in dict(candidates):
-            raise RegistrationError(
-                f"estimator {config.estimator!r} found no pose: its matches are degenerate (all on one line)"
+            return self._unregistered(
+                pair, config, timings,
+                f"no candidate pose: estimator {config.estimator!r} found none (its matches are degenerate: all on one line)",
             )
         if not candidates:
-            raise RegistrationError("no candidate pose: the matches are degenerate (all on one line)")
+            return self._unregistered(pair, config, timings, "no candidate pose: the matches are degenerate (all on one line)")
 
         scale = pair.normalization.scale
         refinement = config.refinement
@@ -507,6 +523,7 @@ class Registrar:
         with _timed(timings, "evaluation"):
             evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
         timings["total"] = sum(timings.values())
+        success = bool(confidence >= config.verification.success_threshold)
 
         return RegistrationResult(
             transformation=refined,
@@ -523,10 +540,44 @@ class Registrar:
             target_points_used=len(pair.target_index),
             timings=timings,
             icp=icp_result,
-            success=bool(confidence >= config.verification.success_threshold),
+            success=success,
             confidence=float(confidence),
             verification=verification,
             config=config,
+            reason=None if success else (
+                f"not verified: confidence {confidence:.3f} is below the success threshold "
+                f"{config.verification.success_threshold:.3f}"
+            ),
+        )
+
+    def _unregistered(
+        self, pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], reason: str
+    ) -> RegistrationResult:
+        """The result of a valid pair no pose could be estimated for: the identity, judged a failure."""
+        refinement = config.refinement
+        distance = refinement.max_correspondence_distance or refinement.distance_fraction * pair.normalization.scale
+        identity = np.eye(4)
+        with _timed(timings, "evaluation"):
+            evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, identity)
+        timings["total"] = sum(timings.values())
+        return RegistrationResult(
+            transformation=identity,
+            correspondences=pair.correspondences,
+            confidences=pair.matches.confidence,
+            fitness=evaluation.fitness,
+            inlier_rmse=evaluation.inlier_rmse,
+            max_correspondence_distance=distance,
+            pose_estimator="none",
+            refinement=None,
+            transformation_before_refinement=identity,
+            subsampled=pair.subsampled,
+            source_points_used=len(pair.source_index),
+            target_points_used=len(pair.target_index),
+            timings=timings,
+            success=False,
+            confidence=0.0,
+            config=config,
+            reason=reason,
         )
 
     def call_config(
@@ -705,19 +756,14 @@ class Registrar:
         return points
 
     def _working_subset(self, points: np.ndarray) -> np.ndarray:
-        """(K,) int64 indices of the points the network sees, K = min(N, max_points)."""
-        if len(points) <= self.max_points:
-            return np.arange(len(points))
-        if self.subsampling == "voxel":
-            # A scan is a surface: with its two largest extents a x b, cells of side
-            # sqrt(a b / (2 max_points)) leave about 2 * max_points occupied, then FPS trims.
-            largest_two = np.sort(np.ptp(points, axis=0))[1:]
-            voxel = float(np.sqrt(np.prod(largest_two) / (2 * self.max_points)))
-            kept = voxel_downsample(points, max(voxel, 1e-12))
-            if len(kept) > self.max_points:
-                kept = kept[np.sort(farthest_point_sampling(points[kept], self.max_points))]
-            return kept
-        return np.sort(farthest_point_sampling(points, self.max_points))
+        """(K,) int64 indices of the points the network sees, K <= min(N, max_points)."""
+        return working_subset(
+            points,
+            self.max_points,
+            self.subsampling,
+            self.manifest.normalization,
+            min_points=self.manifest.geometry.min_points,
+        )
 
 
 def _seeded(config: RuntimeConfig, seed: int | None) -> RuntimeConfig:

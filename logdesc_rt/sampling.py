@@ -1,7 +1,15 @@
-"""Deterministic point subsampling: farthest-point sampling and voxel-grid downsampling.
+"""Deterministic point subsampling: farthest-point sampling, voxel grids, the working subset.
 
-Both functions return *indices* into the input cloud (int64), so callers can gather any
+Every function returns *indices* into the input cloud (int64), so callers can gather any
 per-point attribute (normals, colours, descriptors) alongside the coordinates.
+
+Farthest-point sampling picks the same points (same indices, same order) wherever the cloud
+sits and however it is turned: it works on coordinates centred on the centroid, and distances
+within a tiny relative tolerance count as ties, which go to the lowest index (so round-off of a
+1 km shift or a rotation cannot reorder a lattice's equal distances). The voxel grid is
+axis-aligned and anchored at the cloud's minimum corner: it depends on the frame by nature.
+:func:`working_subset`, the one choice of the points the networks see, is used by the runtime
+and by training alike.
 """
 
 from __future__ import annotations
@@ -10,12 +18,20 @@ import operator
 
 import numpy as np
 
+from .config import SUBSAMPLING_METHODS, NormalizationConfig
 from .errors import InvalidPointCloudError, TooFewPointsError
+from .outliers import stray_point_mask
 from .validation import as_points
 
 # A voxel grid with more cells than this along one axis is refused: the integer voxel
 # coordinates would lose exactness, and such a grid keeps every point anyway.
 MAX_VOXELS_PER_AXIS = 2.0**40
+# Squared distances within this fraction of the cloud's squared radius count as equal in
+# farthest-point sampling (float64 round-off of a rotation or a 1 km shift is ~1e-13 of it).
+FPS_TIE_TOLERANCE = 2.0**-30
+# working_subset first draws a seeded random subset of this many times the working size from a
+# larger cloud: farthest-point sampling then costs O(max_points^2), whatever the cloud's size.
+PRESAMPLE_FACTOR = 8
 
 
 def _power_of_two_scale(points: np.ndarray) -> float:
@@ -35,9 +51,10 @@ def _farthest_point_indices(points: np.ndarray, count: int, start_index: int) ->
     """Greedy farthest-point sampling on validated, well-scaled (N, 3) float64 points.
 
     Returns (count,) int64. Each step picks the point whose squared distance to the chosen
-    set is largest (lowest index on ties). Chosen points are marked -inf, so duplicates are
-    still picked once each and ``count == N`` yields a permutation; the running minimum
-    never lifts a mark back up because ``min(-inf, d) = -inf``.
+    set is largest; distances within ``FPS_TIE_TOLERANCE`` x the largest squared distance from
+    the origin (the centroid, for callers) tie, and the lowest index wins. Chosen points are
+    marked -inf, so duplicates are still picked once each and ``count == N`` yields a
+    permutation; the running minimum never lifts a mark back up because ``min(-inf, d) = -inf``.
     """
     selected = np.empty(count, dtype=np.int64)
     if count == 0:
@@ -45,13 +62,17 @@ def _farthest_point_indices(points: np.ndarray, count: int, start_index: int) ->
     # One contiguous array per axis: the per-step update then runs on 1-D vectors in
     # preallocated buffers, about 5x faster than (N, 3) row arithmetic.
     xs, ys, zs = (np.ascontiguousarray(points[:, axis]) for axis in range(3))
+    tolerance = FPS_TIE_TOLERANCE * float(np.max(xs * xs + ys * ys + zs * zs))
     selected[0] = start_index
     nearest_squared = (xs - xs[start_index]) ** 2 + (ys - ys[start_index]) ** 2 + (zs - zs[start_index]) ** 2
     nearest_squared[start_index] = -np.inf
     distance_squared = np.empty_like(xs)
     scratch = np.empty_like(xs)
+    near_tie = np.empty(len(xs), dtype=bool)
     for position in range(1, count):
-        chosen = int(np.argmax(nearest_squared))
+        largest = nearest_squared[int(np.argmax(nearest_squared))]
+        np.greater_equal(nearest_squared, largest - tolerance, out=near_tie)
+        chosen = int(np.argmax(near_tie))  # the lowest index among the (near-)ties
         selected[position] = chosen
         np.subtract(xs, xs[chosen], out=distance_squared)
         np.multiply(distance_squared, distance_squared, out=distance_squared)
@@ -75,8 +96,8 @@ def farthest_point_sampling(points, count: int, start_index: int | None = None) 
         count: how many points to pick, 0 <= count <= N. ``count == N`` returns a
             permutation of ``range(N)``.
         start_index: index of the first point. Default: the point farthest from the
-            centroid (the lowest index on ties), so the result does not depend on any
-            random state.
+            centroid (the lowest index among near-ties), so the result depends on no random
+            state, nor on where the cloud sits or how it is turned.
 
     Returns:
         (count,) int64 indices into ``points``, in the order they were picked; distinct.
@@ -98,9 +119,12 @@ def farthest_point_sampling(points, count: int, start_index: int | None = None) 
         raise TooFewPointsError(
             f"farthest_point_sampling: cannot pick {count} points from a cloud of {len(points)}"
         )
+    # Centred (translation drops out), then scaled by a power of two (exact; no overflow).
+    points = points - points.mean(axis=0)
     points = points / _power_of_two_scale(points)
     if start_index is None:
-        start_index = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
+        from_centre = np.sum(points**2, axis=1)
+        start_index = int(np.argmax(from_centre >= from_centre.max() * (1.0 - FPS_TIE_TOLERANCE)))
     else:
         start_index = operator.index(start_index)
         if not 0 <= start_index < len(points):
@@ -113,7 +137,9 @@ def farthest_point_sampling(points, count: int, start_index: int | None = None) 
 def voxel_downsample(points, voxel_size: float) -> np.ndarray:
     """Keep one representative point per occupied voxel of a regular grid.
 
-    The grid is anchored at the cloud's minimum corner: point p falls in voxel
+    Not invariant to the cloud's frame: the grid is axis-aligned, so turning the cloud keeps
+    other points (prefer :func:`farthest_point_sampling` where that matters). It is anchored at
+    the cloud's minimum corner: point p falls in voxel
     ``floor((p - min(points)) / voxel_size)``. Each occupied voxel is represented by its
     point nearest the mean of the voxel's points (lowest index on ties), so the result is
     a subset of the input, unlike Open3D's averaging ``voxel_down_sample``.
@@ -177,3 +203,55 @@ def voxel_downsample(points, voxel_size: float) -> np.ndarray:
     candidate_voxels = voxel_of_sorted[candidates]
     first_in_voxel = np.concatenate([[True], candidate_voxels[1:] != candidate_voxels[:-1]])
     return np.sort(order[candidates[first_in_voxel]]).astype(np.int64)
+
+
+def working_subset(
+    points,
+    max_points: int,
+    method: str = "fps",
+    normalization: NormalizationConfig = NormalizationConfig(),
+    min_points: int = 1,
+) -> np.ndarray:
+    """The points the networks see of one cloud: stray points set aside, then at most ``max_points``.
+
+    A cloud of more than ``PRESAMPLE_FACTOR * max_points`` points is first cut to that many by a
+    seeded uniform draw (the same indices for the same point count, wherever the cloud sits).
+    Stray points (:mod:`.outliers`) are then dropped, so that neither the scale nor the
+    sampling spends anything on them (unless fewer than ``min_points`` would remain). A cloud
+    still larger than ``max_points`` is then subsampled: ``"fps"`` by farthest-point sampling
+    (frame-independent), ``"voxel"`` by a grid sized to keep about ``2 * max_points`` cells of a
+    surface, trimmed by farthest-point sampling (frame-dependent, see :func:`voxel_downsample`).
+
+    Args:
+        points: (N, 3) finite coordinates, any unit.
+        max_points: the working size, >= 1.
+        method: "fps" or "voxel".
+        normalization: its ``stray_*`` fields set the stray-point test.
+        min_points: the fewest points the caller needs.
+
+    Returns:
+        (K,) int64 ascending indices into ``points``, K <= min(N, max_points).
+    """
+    if method not in SUBSAMPLING_METHODS:
+        raise ValueError(f"subsampling method {method!r}: expected one of {SUBSAMPLING_METHODS}")
+    points = as_points(points, name="points", min_points=1)
+    kept = np.arange(len(points))
+    if len(points) > PRESAMPLE_FACTOR * max_points:
+        draw = np.random.default_rng(len(points)).choice(len(points), PRESAMPLE_FACTOR * max_points, replace=False)
+        kept = np.sort(draw)
+    not_stray = kept[~stray_point_mask(points[kept], normalization)]
+    if len(not_stray) >= min_points:
+        kept = not_stray
+    if len(kept) <= max_points:
+        return kept.astype(np.int64)
+    candidates = points[kept]
+    if method == "voxel":
+        # A scan is a surface: with its two largest extents a x b, cells of side
+        # sqrt(a b / (2 max_points)) leave about 2 * max_points occupied, then FPS trims.
+        largest_two = np.sort(np.ptp(candidates, axis=0))[1:]
+        voxel = float(np.sqrt(np.prod(largest_two) / (2 * max_points)))
+        kept = kept[voxel_downsample(candidates, max(voxel, 1e-12))]
+        candidates = points[kept]
+        if len(kept) <= max_points:
+            return kept.astype(np.int64)
+    return np.sort(kept[farthest_point_sampling(candidates, max_points)]).astype(np.int64)

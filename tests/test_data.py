@@ -16,6 +16,7 @@ from logdesc_rt.synthetic import (
     SOURCE_POINTS,
     SPACING_NEIGHBOUR,
 )
+from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS
 from training.data import (
     MODELNET10_FOLDER,
     MODELNET40_SUBSET_FOLDER,
@@ -55,7 +56,7 @@ def _residuals(source, target, pose, gt_match_src) -> np.ndarray:
     return np.linalg.norm(_moved(source[matched], pose) - target[gt_match_src[matched]], axis=1)
 
 
-@pytest.mark.parametrize("protocol", PROTOCOLS)
+@pytest.mark.parametrize("protocol", SHAPE_PROTOCOLS)
 def test_ground_truth_correspondences(protocol):
     shape = _shape()
     for seed in range(5):
@@ -169,7 +170,7 @@ def test_same_seed_same_pair_and_same_motion_across_protocols():
     np.testing.assert_array_equal(first.T_gt, partial.T_gt)  # motion drawn first
 
 
-@pytest.mark.parametrize("protocol", PROTOCOLS)
+@pytest.mark.parametrize("protocol", SHAPE_PROTOCOLS)
 def test_any_orientation_turns_the_same_pair(protocol):
     """The whole-pair rotation is drawn last: the same pair, both clouds turned by one G."""
     shape = _shape()
@@ -226,7 +227,7 @@ def test_pair_dataset_any_orientation_turns_its_pairs():
 
 def test_protocol_mix_and_schedule():
     assert parse_protocol_mix("clean:1,partial:3") == {
-        "clean": 0.25, "noisy": 0.0, "partial": 0.75, "resampled": 0.0, "resampled_partial": 0.0,
+        "clean": 0.25, "noisy": 0.0, "partial": 0.75, "resampled": 0.0, "resampled_partial": 0.0, "scan": 0.0,
     }
     # A protocol added later with weight 0 leaves an older mix's validation pairs as they were.
     old_mix = parse_protocol_mix("clean:0.1,noisy:0.3,partial:0.6")
@@ -242,7 +243,7 @@ def test_protocol_mix_and_schedule():
     assert schedule.protocol_at(0, 0.99) == "clean"
     assert schedule.protocol_at(100, 0.01) == "partial"
     assert schedule.mix_at(50) == pytest.approx(
-        {"clean": 0.5, "noisy": 0.0, "partial": 0.5, "resampled": 0.0, "resampled_partial": 0.0}
+        {"clean": 0.5, "noisy": 0.0, "partial": 0.5, "resampled": 0.0, "resampled_partial": 0.0, "scan": 0.0}
     )
     assert schedule.points_at(9) == 256 and schedule.points_at(10) == 1024
 
@@ -267,7 +268,7 @@ def test_validation_keys_are_fixed_and_proportional():
     keys = validation_keys(40, 100, mix, seed=1)
     assert keys == validation_keys(40, 100, mix, seed=1)
     counts = {p: sum(k.protocol == p for k in keys) for p in PROTOCOLS}
-    assert counts == {"clean": 20, "noisy": 30, "partial": 50, "resampled": 0, "resampled_partial": 0}
+    assert counts == {"clean": 20, "noisy": 30, "partial": 50, "resampled": 0, "resampled_partial": 0, "scan": 0}
     assert len(set(keys)) == 100  # shapes reused with another epoch word, never the same pair
     for batch in fixed_pair_batches(keys, 8):
         assert len({(k.protocol, k.points_per_cloud) for k in batch}) == 1 and len(batch) <= 8
@@ -356,7 +357,7 @@ def test_training_split_is_disjoint_and_never_reads_test(data_root):
 def test_real_shape_pairs(data_root):
     shapes = split_training_shapes(load_training_sources(data_root), 0.05, seed=0)
     dataset = PairDataset(shapes.val[:4], seed=0)
-    for protocol in PROTOCOLS:
+    for protocol in SHAPE_PROTOCOLS:
         sample = dataset[PairKey(0, 2, protocol, 1024)]
         residuals = _residuals(sample["source_user"], sample["target_user"], sample["T_gt_user"], sample["gt_match_src"])
         bound = 1e-9 if protocol == "clean" else NOISE_BOUND

@@ -15,6 +15,7 @@ from training.geometry_torch import invariant_geometry  # noqa: E402
 from .shapes import fibonacci_sphere  # noqa: E402
 
 V3 = GeometryConfig(edge_layout="invariant", normals="pca")
+V4 = GeometryConfig(edge_layout="chiral", normals="pca")
 
 
 def _clouds() -> list[np.ndarray]:
@@ -28,7 +29,10 @@ def _clouds() -> list[np.ndarray]:
     return clouds
 
 
-@pytest.mark.parametrize("config", [V3, GeometryConfig(edge_layout="invariant", normals="pca", pca_radius=0.15, umbrella_neighbours=16)])
+@pytest.mark.parametrize(
+    "config",
+    [V3, V4, GeometryConfig(edge_layout="chiral", normals="pca", pca_radius=0.15, umbrella_neighbours=16)],
+)
 def test_torch_geometry_equals_the_numpy_reference(config):
     clouds = _clouds()
     edges, normals = invariant_geometry(torch.from_numpy(np.stack(clouds)), config)
@@ -46,12 +50,13 @@ def test_torch_geometry_on_a_real_partial_pair(shared_data):
         shape = handle["data"][7].astype(np.float64)
     pair = make_pair(shape, "partial", np.random.default_rng(3))
     for cloud in (pair.source_network, pair.target_network):
-        edges, _ = invariant_geometry(torch.from_numpy(cloud)[None], V3)
-        np.testing.assert_allclose(edges[0].numpy(), compute_geometry(cloud, V3).edges, atol=2e-5)
+        for config in (V3, V4):
+            edges, _ = invariant_geometry(torch.from_numpy(cloud)[None], config)
+            np.testing.assert_allclose(edges[0].numpy(), compute_geometry(cloud, config).edges, atol=2e-5)
 
 
 def test_torch_geometry_refuses_the_paper_layout_and_tiny_clouds():
-    with pytest.raises(ValueError, match="invariant layout"):
+    with pytest.raises(ValueError, match="invariant and chiral layouts"):
         invariant_geometry(torch.zeros(1, 40, 3), GeometryConfig())
     with pytest.raises(ValueError, match="neighbours need at least"):
         invariant_geometry(torch.zeros(1, 20, 3, dtype=torch.float64), V3)

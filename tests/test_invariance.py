@@ -22,6 +22,8 @@ from logdesc_rt.geometry import compute_geometry
 from .shapes import fibonacci_sphere
 
 INVARIANT_GEOMETRY = GeometryConfig(edge_layout="invariant", normals="pca")
+CHIRAL_GEOMETRY = GeometryConfig(edge_layout="chiral", normals="pca")
+MIRROR = np.diag([-1.0, 1.0, 1.0])  # a reflection in the plane x = 0
 # Rotations a user's scans really differ by: quarter and half turns about axes and about a
 # skew axis, and random ones; translations up to a kilometre (network units are centred).
 AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
@@ -59,12 +61,39 @@ def _moved(points: np.ndarray, rotation: Rotation, translation: np.ndarray) -> n
 # -- geometry --------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("geometry", [INVARIANT_GEOMETRY, CHIRAL_GEOMETRY], ids=["invariant", "chiral"])
 @pytest.mark.parametrize("name", list(ROTATIONS))
-def test_invariant_edges_do_not_change_under_rigid_motion(shape, name):
-    reference = compute_geometry(shape, INVARIANT_GEOMETRY)
-    moved = compute_geometry(_moved(shape, ROTATIONS[name], TRANSLATIONS[1]), INVARIANT_GEOMETRY)
+def test_invariant_edges_do_not_change_under_rigid_motion(shape, name, geometry):
+    reference = compute_geometry(shape, geometry)
+    moved = compute_geometry(_moved(shape, ROTATIONS[name], TRANSLATIONS[1]), geometry)
     assert np.array_equal(reference.neighbour_index, moved.neighbour_index)
-    assert np.abs(reference.edges - moved.edges).max() < 1e-5
+    # The chiral channels are cube roots: near 0, float32 round-off of the product grows to ~1e-5.
+    assert np.abs(reference.edges - moved.edges).max() < (1e-5 if geometry is INVARIANT_GEOMETRY else 1e-4)
+
+
+def test_chiral_channels_change_sign_in_a_mirror_and_nothing_else_changes(shape):
+    """The 11 invariant channels cannot see a reflection; the two chiral ones flip sign."""
+    reference = compute_geometry(shape, CHIRAL_GEOMETRY)
+    mirrored = compute_geometry(shape @ MIRROR.T, CHIRAL_GEOMETRY)
+    assert np.array_equal(reference.neighbour_index, mirrored.neighbour_index)
+    np.testing.assert_allclose(mirrored.edges[..., :11], reference.edges[..., :11], atol=1e-6)
+    np.testing.assert_allclose(mirrored.edges[..., 11:], -reference.edges[..., 11:], atol=1e-5)
+    # Not a vacuous flip of zeros: the chiral channels carry signal at most edges.
+    assert np.mean(np.abs(reference.edges[..., 11:]) > 0.02) > 0.5
+
+
+def test_chiral_channels_do_not_depend_on_normal_or_axis_signs(shape):
+    from logdesc_rt.geometry import chiral_edge_channels
+
+    geometry = compute_geometry(shape, CHIRAL_GEOMETRY)
+    pca = geometry.pca
+    gate = (pca.anisotropy - pca.planarity) * pca.planarity
+    rng = np.random.default_rng(1)
+    flips = np.where(rng.random((len(shape), 3)) < 0.5, -1.0, 1.0)  # every axis of every frame
+    flipped = chiral_edge_channels(
+        geometry.points, geometry.normals * flips[:, 2:], pca.lrf * flips[:, None, :], gate, geometry.neighbour_index
+    )
+    assert np.abs(flipped - geometry.edges[..., 11:]).max() < 1e-5
 
 
 def test_paper_edges_do_change_under_rotation(shape):
@@ -118,6 +147,36 @@ def _export_random_network(preset: str, folder: Path) -> Registrar:
 def v3_registrar(tmp_path_factory) -> Registrar:
     """A Registrar on the v3 preset exported with seeded random weights."""
     return _export_random_network("v3", tmp_path_factory.mktemp("v3"))
+
+
+@pytest.fixture(scope="module")
+def v4_registrar(tmp_path_factory) -> Registrar:
+    """A Registrar on the v4 preset (chiral edges) exported with seeded random weights."""
+    return _export_random_network("v4", tmp_path_factory.mktemp("v4"))
+
+
+@pytest.mark.parametrize("name", ["180 deg about a skew axis", "random 1"])
+def test_v4_descriptors_are_invariant(v4_registrar, shape, name):
+    reference = v4_registrar.describe(shape)
+    moved = v4_registrar.describe(_moved(shape, ROTATIONS[name], TRANSLATIONS[2]))
+    assert np.array_equal(reference.indices, moved.indices)
+    difference = np.abs(reference.descriptors - moved.descriptors).max()
+    assert difference <= 1e-4, f"{name}: max |difference| {difference:.2e}"
+
+
+def _mirror_distance(registrar: Registrar, shape: np.ndarray) -> np.ndarray:
+    """(N,) 1 - cosine between each point's descriptor and its mirror twin's (same index)."""
+    reference = registrar.describe(shape)
+    mirrored = registrar.describe(shape @ MIRROR.T)
+    assert np.array_equal(reference.indices, mirrored.indices)
+    return 1.0 - np.einsum("nd,nd->n", reference.descriptors, mirrored.descriptors)
+
+
+def test_v4_tells_a_shape_from_its_mirror_image_and_v3_cannot(v4_registrar, v3_registrar, shape):
+    """A ModelNet chair is not mirror symmetric about x = 0 point by point: v4's descriptor of a
+    point and of its mirror image differ (1 - cosine > 1e-3) at most points; v3's are identical."""
+    assert np.abs(_mirror_distance(v3_registrar, shape)).max() < 1e-6
+    assert np.mean(_mirror_distance(v4_registrar, shape) > 1e-3) > 0.5
 
 
 @pytest.mark.parametrize("translation", range(len(TRANSLATIONS)))

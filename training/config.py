@@ -30,8 +30,10 @@ class ModelConfig(_DictMixin):
     """Sizes and constants of the descriptor, the normal-encoder transformer and the matcher.
 
     Descriptor (paper section 3.3, "Local-to-global feature aggregation"):
-        edge_channels: channels of the edge-feature tensor (15, see
-            :mod:`logdesc_rt.geometry.edge_features`).
+        edge_channels: channels of the edge-feature tensor (15 for the paper's layout, see
+            :mod:`logdesc_rt.geometry.edge_features`; 11 or 13 for the invariant network, which
+            then reads the "invariant" or the "chiral" layout of
+            :mod:`logdesc_rt.geometry.invariant_features`).
         descriptor_channels: output channels of the 1x1 convolutions on the (N, k, 15) edge
             tensor, each followed by GroupNorm and ReLU, then a max over the k neighbours. The
             descriptor attention runs at the last width ``W = descriptor_channels[-1]``.
@@ -176,7 +178,9 @@ class ModelConfig(_DictMixin):
         """The per-point geometry this network reads (training builds its pairs with it and
         stores it in the checkpoint; export copies it into the model's manifest)."""
         if self.architecture == "invariant":
-            return GeometryConfig(edge_layout="invariant", normals="pca")
+            # v3 reads the 11 invariant channels; v4 the 13 of the chiral layout.
+            layout = "chiral" if self.edge_channels == EDGE_CHANNELS["chiral"] else "invariant"
+            return GeometryConfig(edge_layout=layout, normals="pca")
         return GeometryConfig()
 
     def to_dict(self) -> dict[str, Any]:
@@ -231,6 +235,19 @@ PRESETS: dict[str, ModelConfig] = {
     "v3": ModelConfig(
         architecture="invariant",
         edge_channels=EDGE_CHANNELS["invariant"],
+        descriptor_channels=(32, 64, 96),
+        group_norm_groups=4,
+        descriptor_attention_layers=2,
+        descriptor_heads=4,
+        descriptor_dim=96,
+        transformer_layers=3,
+        transformer_heads=4,
+    ),
+    # v4: v3's sizes reading the chiral edge layout (13 channels: v3's 11 and two that change
+    # sign under a reflection), so that v3's weights warm-start it (training.train --init-from).
+    "v4": ModelConfig(
+        architecture="invariant",
+        edge_channels=EDGE_CHANNELS["chiral"],
         descriptor_channels=(32, 64, 96),
         group_norm_groups=4,
         descriptor_attention_layers=2,

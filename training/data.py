@@ -40,7 +40,13 @@ from logdesc_rt.config import GeometryConfig, NormalizationConfig
 from logdesc_rt.errors import InvalidPointCloudError
 from logdesc_rt.geometry import compute_geometry
 # The pair protocol lives with the runtime, which the demo, tests and benchmarks share.
-from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS, SOURCE_POINTS, Pair, make_pair
+from logdesc_rt.scan_simulation import SCAN_PROTOCOL, make_scan_pair
+from logdesc_rt.synthetic import PAPER_PROTOCOLS, SOURCE_POINTS, Pair, make_pair
+from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS
+
+# Every protocol training can draw: the 1024-point shape protocols of logdesc_rt.synthetic, and
+# simulated range scans of the dense shapes (logdesc_rt.scan_simulation).
+PROTOCOLS: tuple[str, ...] = SHAPE_PROTOCOLS + (SCAN_PROTOCOL,)
 
 try:  # The pair construction is usable without torch (e.g. by NumPy-only benchmarks).
     from torch.utils.data import Dataset as _TorchDataset
@@ -51,6 +57,8 @@ except ImportError:  # pragma: no cover - torch is a training dependency
 
 __all__ = [
     "DEFAULT_DATA_ROOT",
+    "DENSE_FOLDER",
+    "DenseShapes",
     "MODELNET10_FOLDER",
     "MODELNET40_SUBSET_FOLDER",
     "PAPER_PROTOCOLS",
@@ -59,16 +67,19 @@ __all__ = [
     "Pair",
     "PairDataset",
     "PairKey",
+    "SCAN_PROTOCOL",
     "ProtocolSchedule",
     "TrainBatchSampler",
     "TrainingShapes",
     "fixed_pair_batches",
+    "load_dense_shapes",
     "load_modelnet",
     "load_training_sources",
     "make_pair",
     "parse_protocol_mix",
     "read_modelnet_h5",
     "split_training_shapes",
+    "split_train_val_test",
     "validation_keys",
 ]
 
@@ -76,6 +87,7 @@ __all__ = [
 DEFAULT_DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MODELNET10_FOLDER = "modelnet10_hdf5_1024"
 MODELNET40_SUBSET_FOLDER = "modelnet40_subset_hdf5_2048"
+DENSE_FOLDER = "modelnet40_subset_10k"  # the ModelNet40 subset's shapes, 10,000 points with normals
 
 # Seed-sequence "epochs" reserved for streams other than training epochs (far above any
 # real epoch count), so that e.g. validation pairs never coincide with a training pair.
@@ -277,6 +289,75 @@ def split_training_shapes(
     )
 
 
+@dataclass(frozen=True)
+class DenseShapes:
+    """Dense shapes with normals, for simulated range scans (:mod:`logdesc_rt.scan_simulation`).
+
+    Attributes:
+        points: (S, P, 3) float32, unit sphere (P = 10,000 in ``modelnet40_subset_10k``).
+        normals: (S, P, 3) float32 unit normals, signs not guaranteed.
+        names: (S,) shape ids such as ``"airplane_0001"`` (the same ids as the ModelNet folders).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    names: list[str]
+
+    def subset(self, names: set[str]) -> "DenseShapes":
+        """The shapes whose id is in ``names``, in file order."""
+        keep = [index for index, name in enumerate(self.names) if name in names]
+        return DenseShapes(self.points[keep], self.normals[keep], [self.names[index] for index in keep])
+
+
+def load_dense_shapes(data_root=DEFAULT_DATA_ROOT) -> DenseShapes:
+    """Read ``modelnet40_subset_10k/train.h5`` (../shared/data/README.md, "Dense shapes")."""
+    import h5py
+
+    with h5py.File(Path(data_root) / DENSE_FOLDER / "train.h5", "r") as handle:
+        points = (handle["points_u16"][:].astype(np.float32) / 32767.5 - 1.0).astype(np.float32)
+        normals = handle["normals_i8"][:].astype(np.float32) / 127.0
+        names = [name.decode() if isinstance(name, bytes) else str(name) for name in handle["shape_name"][:]]
+    normals /= np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-12)
+    return DenseShapes(points=points, normals=normals, names=names)
+
+
+@dataclass(frozen=True)
+class ThreeWaySplit:
+    """Training shapes split three ways by shape name (:func:`split_train_val_test`).
+
+    Attributes:
+        shapes: train and validation shapes of the 1024-point sources.
+        test_names: shape ids held out of training and validation in every source.
+    """
+
+    shapes: TrainingShapes
+    test_names: frozenset[str]
+
+
+def split_train_val_test(
+    sources: Sequence[tuple[str, ModelNetSplit]], val_fraction: float = 0.05, seed: int = 1, test_seed: int = 0
+) -> ThreeWaySplit:
+    """v4's split: test = the shapes v3 validated on, validation = a fresh draw from the rest.
+
+    The test names are :func:`split_training_shapes` ``(sources, val_fraction, test_seed)``'s
+    validation names, i.e. the shapes v3 (trained with seed 0) never trained on, so that v3 and
+    v4 can be compared on shapes neither saw. Validation is then drawn the same way with ``seed``
+    from the remaining shapes, and training is the rest; all by shape name across sources (the
+    dense shapes of :func:`load_dense_shapes` follow the same names).
+    """
+    test_names = split_training_shapes(sources, val_fraction, test_seed).val_names
+    remaining = []
+    for folder, data in sources:
+        keep = [index for index, name in enumerate(data.shape_ids) if name not in test_names]
+        remaining.append((folder, ModelNetSplit(
+            points=data.points[keep],
+            labels=data.labels[keep],
+            class_names=data.class_names,
+            shape_ids=[data.shape_ids[index] for index in keep],
+        )))
+    return ThreeWaySplit(shapes=split_training_shapes(remaining, val_fraction, seed), test_names=frozenset(test_names))
+
+
 # ----------------------------------------------------------------------------- protocol mix
 def parse_protocol_mix(text: str | Mapping[str, float]) -> dict[str, float]:
     """Parse ``"clean:0.2,noisy:0.3,partial:0.5"`` (or a JSON object, or a dict); normalised.
@@ -321,6 +402,7 @@ class ProtocolSchedule:
     points_per_cloud: int = SOURCE_POINTS
     early_points_per_cloud: int | None = None
     early_steps: int = 0
+    scan_points_per_cloud: int | None = None
 
     def mix_at(self, step: int) -> dict[str, float]:
         if self.start_mix is None or self.curriculum_steps <= 0 or step >= self.curriculum_steps:
@@ -331,7 +413,10 @@ class ProtocolSchedule:
             for name in PROTOCOLS
         }
 
-    def points_at(self, step: int) -> int:
+    def points_at(self, step: int, protocol: str | None = None) -> int:
+        """Cloud size at ``step``; scan pairs have their own (``scan_points_per_cloud``) if set."""
+        if protocol == SCAN_PROTOCOL and self.scan_points_per_cloud is not None:
+            return self.scan_points_per_cloud
         if self.early_points_per_cloud is not None and step < self.early_steps:
             return self.early_points_per_cloud
         return self.points_per_cloud
@@ -392,6 +477,7 @@ class PairDataset(_TorchDataset):
         any_orientation: bool = False,
         geometry_on_device: bool = False,
         any_relative_rotation: bool = False,
+        dense: DenseShapes | None = None,
     ) -> None:
         shapes = np.asarray(shapes, dtype=np.float32)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < SOURCE_POINTS:
@@ -406,6 +492,8 @@ class PairDataset(_TorchDataset):
         # True: samples carry points only; training computes the geometry for the whole batch
         # on its device (training/geometry_torch.py), where workers could not keep a GPU fed.
         self.geometry_on_device = bool(geometry_on_device)
+        # Simulated scans ("scan" keys) are cut from these; key.index is taken modulo their count.
+        self.dense = dense
 
     def __len__(self) -> int:
         return len(self.shapes)
@@ -413,6 +501,8 @@ class PairDataset(_TorchDataset):
     def pair(self, key: PairKey, attempt: int = 0) -> Pair:
         """The :class:`Pair` of ``key`` (no geometry)."""
         words = [self.seed, int(key.epoch), int(key.index)] + ([attempt] if attempt else [])
+        if key.protocol == SCAN_PROTOCOL:
+            return self._scan_pair(key, words)
         return make_pair(
             self.shapes[key.index],
             key.protocol,
@@ -422,6 +512,28 @@ class PairDataset(_TorchDataset):
             any_orientation=self.any_orientation,
             any_relative_rotation=self.any_relative_rotation,
         )
+
+    def _scan_pair(self, key: PairKey, words: list[int]) -> Pair:
+        """Two simulated scans of dense shape ``key.index % len(dense)``, exactly
+        ``key.points_per_cloud`` points each (the next shape if one is too sparse)."""
+        if self.dense is None:
+            raise ValueError(f"{self.name}: a {SCAN_PROTOCOL!r} pair needs the dense shapes (dense=...)")
+        last_error: Exception | None = None
+        for offset in range(4):
+            index = (int(key.index) + offset) % len(self.dense.points)
+            try:
+                return make_scan_pair(
+                    self.dense.points[index],
+                    self.dense.normals[index],
+                    np.random.default_rng(words + [offset]),
+                    points_per_cloud=key.points_per_cloud,
+                    normalization_config=self.normalization_config,
+                    min_points=self.geometry_config.min_points,
+                    exact_size=True,
+                )
+            except ValueError as error:  # too sparse for two views of that size
+                last_error = error
+        raise RuntimeError(f"{self.name} scan pair {key}: four shapes too sparse") from last_error
 
     def __getitem__(self, key) -> dict:
         key = PairKey(*key) if not isinstance(key, PairKey) else key
@@ -523,7 +635,7 @@ class TrainBatchSampler(_TorchSampler):
 
     def _keys(self, epoch, batch, step, order, uniforms) -> list[PairKey]:
         protocol = self.schedule.protocol_at(step, float(uniforms[batch]))
-        points = self.schedule.points_at(step)
+        points = self.schedule.points_at(step, protocol)
         indices = order[batch * self.batch_size : (batch + 1) * self.batch_size]
         return [PairKey(epoch, int(i), protocol, points) for i in indices]
 
@@ -539,7 +651,7 @@ class TrainBatchSampler(_TorchSampler):
 
 def validation_keys(
     num_shapes: int, num_pairs: int, mix: Mapping[str, float], seed: int = 0,
-    points_per_cloud: int = SOURCE_POINTS,
+    points_per_cloud: int = SOURCE_POINTS, scan_points_per_cloud: int | None = None,
 ) -> list[PairKey]:
     """Fixed validation pairs: ``num_pairs`` shapes (cycled if fewer), protocols in proportion.
 
@@ -560,7 +672,8 @@ def validation_keys(
     keys = []
     for position, protocol in enumerate(protocols):
         cycle, slot = divmod(position, num_shapes)
-        keys.append(PairKey(VALIDATION_EPOCH + cycle, int(order[slot]), protocol, points_per_cloud))
+        points = scan_points_per_cloud if protocol == SCAN_PROTOCOL and scan_points_per_cloud else points_per_cloud
+        keys.append(PairKey(VALIDATION_EPOCH + cycle, int(order[slot]), protocol, points))
     return keys
 
 

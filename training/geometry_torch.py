@@ -6,9 +6,10 @@ up, so this module computes the same geometry for a whole batch on the device. I
 edited apart from the reference: ``tests/test_geometry_torch.py`` compares the two on the same
 points, channel by channel.
 
-Only the ``"invariant"`` edge layout with PCA normals (what the v3 network reads) is ported:
-kNN by a dense distance matrix, PCA over the radius neighbourhood, and
-:func:`logdesc_rt.geometry.invariant_edge_features`. Shapes: B clouds of N points.
+Only the ``"invariant"`` and ``"chiral"`` edge layouts with PCA normals (what the v3 and v4
+networks read) are ported: kNN by a dense distance matrix, PCA over the radius neighbourhood,
+:func:`logdesc_rt.geometry.invariant_edge_features` and
+:func:`logdesc_rt.geometry.chiral_edge_channels`. Shapes: B clouds of N points.
 """
 
 from __future__ import annotations
@@ -24,15 +25,15 @@ def invariant_geometry(points: torch.Tensor, config: GeometryConfig) -> tuple[to
 
     Args:
         points: (B, N, 3) positions, network units, N > config.umbrella_neighbours.
-        config: an ``edge_layout="invariant"``, ``normals="pca"`` geometry config.
+        config: an ``edge_layout="invariant"`` or ``"chiral"``, ``normals="pca"`` geometry config.
 
     Returns:
-        edges: (B, N, k, 11) float32 (the reference's channels; k = umbrella_neighbours).
+        edges: (B, N, k, C) float32 (the reference's C = 11 or 13 channels; k = umbrella_neighbours).
         normals: (B, N, 3) float32 unit PCA normals (signs may differ from the reference's:
             nothing downstream reads them).
     """
-    if config.edge_layout != "invariant" or config.normals != "pca":
-        raise ValueError("the torch geometry covers the invariant layout with PCA normals only")
+    if config.edge_layout not in ("invariant", "chiral") or config.normals != "pca":
+        raise ValueError("the torch geometry covers the invariant and chiral layouts with PCA normals only")
     batch, count, _ = points.shape
     k = config.umbrella_neighbours
     if count <= k:
@@ -44,9 +45,12 @@ def invariant_geometry(points: torch.Tensor, config: GeometryConfig) -> tuple[to
         squared_distance, index = torch.topk(squared, neighbours, dim=2, largest=False, sorted=True)
         distance = squared_distance.clamp_min(0.0).sqrt()
 
-        shape_features, normals = _pca(points, distance, index, config)
+        shape_features, normals, major = _pca(points, distance, index, config)
         neighbour_index = _drop_self(index[:, :, : k + 1], k)
         edges = _invariant_edges(points, shape_features, normals, neighbour_index, config.pca_radius)
+        if config.edge_layout == "chiral":
+            gate = (shape_features[..., 0] - shape_features[..., 1]) * shape_features[..., 1]
+            edges = torch.cat((edges, _chiral_channels(points, normals, major, gate, neighbour_index)), dim=3)
     return edges.float(), normals.float()
 
 
@@ -57,8 +61,9 @@ def _gather_points(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return torch.gather(values, 1, flat).reshape(batch, count, neighbours, values.shape[2])
 
 
-def _pca(points, distance, index, config: GeometryConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, N, 3) anisotropy / planarity / omnivariance and (B, N, 3) PCA normals (w)."""
+def _pca(points, distance, index, config: GeometryConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, N, 3) anisotropy / planarity / omnivariance, (B, N, 3) PCA normals (w) and (B, N, 3)
+    major axes (u)."""
     max_neighbours = config.pca_max_neighbours
     distance, index = distance[:, :, :max_neighbours], index[:, :, :max_neighbours]
     within = distance < config.pca_radius
@@ -80,7 +85,8 @@ def _pca(points, distance, index, config: GeometryConfig) -> tuple[torch.Tensor,
     normals = eigenvectors[:, :, :, 0]
     # The reference gives shapeless neighbourhoods the identity LRF: w = z.
     normals = torch.where(has_shape.unsqueeze(2), normals, torch.tensor([0.0, 0.0, 1.0]).to(normals))
-    return torch.stack((anisotropy, planarity, omnivariance), dim=2), normals
+    major = torch.where(has_shape.unsqueeze(2), eigenvectors[:, :, :, 2], torch.tensor([1.0, 0.0, 0.0]).to(normals))
+    return torch.stack((anisotropy, planarity, omnivariance), dim=2), normals, major
 
 
 def _drop_self(index: torch.Tensor, k: int) -> torch.Tensor:
@@ -118,4 +124,29 @@ def _invariant_edges(points, shape_features, normals, neighbour_index, length_sc
             _gather_points(scaled_shape, neighbour_index) - point_shape,
         ),
         dim=3,
+    )
+
+
+def _cbrt(values: torch.Tensor) -> torch.Tensor:
+    """Real cube root, odd like NumPy's ``cbrt``."""
+    return values.sign() * values.abs().pow(1.0 / 3.0)
+
+
+def _chiral_channels(points, normals, major, gate, neighbour_index) -> torch.Tensor:
+    """The (B, N, k, 2) reflection-odd channels of :func:`logdesc_rt.geometry.chiral_edge_channels`."""
+    offsets = _gather_points(points, neighbour_index) - points.unsqueeze(2)
+    distance = offsets.norm(dim=3)
+    direction = offsets / torch.where(distance > 0.0, distance, torch.ones_like(distance)).unsqueeze(3)
+    neighbour_normals = _gather_points(normals, neighbour_index)
+    point_normals = normals.unsqueeze(2).expand_as(neighbour_normals)
+    normal_i_offset = (direction * point_normals).sum(dim=3)
+    normal_m_offset = (direction * neighbour_normals).sum(dim=3)
+    twist = (torch.linalg.cross(point_normals, neighbour_normals, dim=3) * direction).sum(dim=3)
+    octant = (
+        (direction * torch.linalg.cross(major, normals, dim=2).unsqueeze(2)).sum(dim=3)
+        * (direction * major.unsqueeze(2)).sum(dim=3)
+        * (direction * normals.unsqueeze(2)).sum(dim=3)
+    )
+    return torch.stack(
+        (_cbrt(twist * normal_i_offset * normal_m_offset), _cbrt(gate.unsqueeze(2) * octant)), dim=3
     )

@@ -65,13 +65,16 @@ from training.config import PRESETS, ModelConfig
 from training.data import (
     DEFAULT_DATA_ROOT,
     PROTOCOLS,
+    SCAN_PROTOCOL,
     SOURCE_POINTS,
     PairDataset,
     ProtocolSchedule,
     TrainBatchSampler,
     fixed_pair_batches,
+    load_dense_shapes,
     load_training_sources,
     parse_protocol_mix,
+    split_train_val_test,
     split_training_shapes,
     validation_keys,
 )
@@ -106,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, required=True, help="output folder (checkpoints, log.jsonl)")
     run.add_argument("--resume", default=None,
                      help="checkpoint to continue from, or 'auto' for --out/last.pt if present")
+    run.add_argument("--init-from", type=Path, default=None,
+                     help="a fresh run (step 0, new Adam) starting from this checkpoint's weights; edge channels "
+                          "the checkpoint lacks (v3 -> v4's chiral layout) get zero weights, so the network's "
+                          "function is unchanged at step 0 (ignored when resuming)")
     run.add_argument("--seed", type=int, default=0, help="model init, data and sampler seed")
     run.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
                      help="auto = cuda when available")
@@ -152,8 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     data.add_argument("--protocol-mix", default="clean:0.2,noisy:0.3,partial:0.5",
                       help="protocol weights per batch, e.g. 'clean:0.2,noisy:0.3,partial:0.5'; protocols: "
-                           "clean, noisy, partial (the paper's) and resampled, resampled_partial (each cloud "
-                           "its own half of the shape's points, as real scans: logdesc_rt/synthetic.py)")
+                           "clean, noisy, partial (the paper's), resampled, resampled_partial (each cloud "
+                           "its own half of the shape's points: logdesc_rt/synthetic.py) and scan (two simulated "
+                           "range scans of a dense shape: logdesc_rt/scan_simulation.py)")
     data.add_argument("--val-protocol-mix", default=None,
                       help="the validation pairs' protocols (default --protocol-mix); keep a resumed run's "
                            "validation set when its training mix changes")
@@ -162,6 +170,12 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--curriculum-start-mix", default="clean:1")
     data.add_argument("--points-per-cloud", type=int, default=SOURCE_POINTS,
                       help="source points per pair (1024 = paper; partial keeps 75%%)")
+    data.add_argument("--scan-points-per-cloud", type=int, default=None,
+                      help="points per cloud of 'scan' pairs (default --points-per-cloud)")
+    data.add_argument("--split", default="v3", choices=["v3", "three-way"],
+                      help="v3: 5 %% of each source held out for validation (seed --seed); three-way (v4): v3's "
+                           "validation shapes become the test shapes, never read here, and validation is a fresh "
+                           "5 %% of the rest (training.data.split_train_val_test)")
     data.add_argument("--early-points-per-cloud", type=int, default=None,
                       help="fewer points for the first --early-points-steps steps (speed)")
     data.add_argument("--early-points-steps", type=int, default=0)
@@ -646,13 +660,15 @@ def start_run(args) -> TrainingRun:
 
     seed_everything(args.seed)
     model = LoGDescMatcher(model_config).to(device)
+    if checkpoint is None and args.init_from is not None:
+        warm_start(model, torch.load(args.init_from, map_location="cpu", weights_only=False)["model"])
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, args))
     progress = Progress() if checkpoint is None else _restore(checkpoint, model, optimizer, scheduler, args)
     del checkpoint
 
     geometry = model_config.geometry()
-    if args.geometry_on_device and geometry.edge_layout != "invariant":
+    if args.geometry_on_device and geometry.edge_layout not in ("invariant", "chiral"):
         raise SystemExit("--geometry-on-device: only the invariant networks' geometry has a torch port")
     train_loader, val_loader, batches_per_epoch = _loaders(args, geometry, device, workers, progress.step)
 
@@ -674,6 +690,30 @@ def start_run(args) -> TrainingRun:
         args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
     ))
     return run
+
+
+def warm_start(model: LoGDescMatcher, state: dict) -> None:
+    """Load ``state`` into ``model``; a tensor wider than its saved one along the input
+    channels (the first edge convolution, when the edge layout gained channels) takes the
+    saved weights in its first columns and zeros in the rest, so the function is unchanged.
+
+    Raises:
+        ValueError: a parameter is missing, or differs in another way than that.
+    """
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    if missing:
+        raise ValueError(f"--init-from: the checkpoint lacks {missing[:5]}")
+    for name, tensor in own.items():
+        saved = state[name]
+        if saved.shape == tensor.shape:
+            tensor.copy_(saved)
+        elif saved.ndim == tensor.ndim and saved.ndim >= 2 and saved.shape[0] == tensor.shape[0] and \
+                saved.shape[2:] == tensor.shape[2:] and saved.shape[1] < tensor.shape[1]:
+            tensor.zero_()
+            tensor[:, : saved.shape[1]].copy_(saved)
+        else:
+            raise ValueError(f"--init-from: {name} is {tuple(saved.shape)} there, {tuple(tensor.shape)} here")
 
 
 def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
@@ -712,8 +752,17 @@ def _restore(checkpoint: dict, model, optimizer, scheduler, args) -> Progress:
 def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: int):
     """(train loader, validation loader or None, batches per epoch): ModelNet10 train + the
     ModelNet40 subset, the validation split carved by shape name (:mod:`training.data`)."""
-    shapes = split_training_shapes(load_training_sources(args.data_root), args.val_fraction, args.seed)
+    sources = load_training_sources(args.data_root)
+    if args.split == "three-way":
+        shapes = split_train_val_test(sources, args.val_fraction, args.seed).shapes
+    else:
+        shapes = split_training_shapes(sources, args.val_fraction, args.seed)
     mix = parse_protocol_mix(args.protocol_mix)
+    val_mix = parse_protocol_mix(args.val_protocol_mix) if args.val_protocol_mix else mix
+    dense = {"train": None, "val": None}
+    if mix.get(SCAN_PROTOCOL, 0.0) > 0 or val_mix.get(SCAN_PROTOCOL, 0.0) > 0:
+        all_dense = load_dense_shapes(args.data_root)
+        dense = {"train": all_dense.subset(shapes.train_names), "val": all_dense.subset(shapes.val_names)}
     schedule = ProtocolSchedule(
         mix=mix,
         start_mix=parse_protocol_mix(args.curriculum_start_mix) if args.curriculum_steps > 0 else None,
@@ -721,11 +770,12 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
         points_per_cloud=args.points_per_cloud,
         early_points_per_cloud=args.early_points_per_cloud,
         early_steps=args.early_points_steps,
+        scan_points_per_cloud=args.scan_points_per_cloud,
     )
     datasets = {
         name: PairDataset(
             split, args.seed, geometry_config=geometry, name=name, any_orientation=args.any_orientation,
-            geometry_on_device=bool(args.geometry_on_device),
+            geometry_on_device=bool(args.geometry_on_device), dense=dense[name],
         )
         for name, split in (("train", shapes.train), ("val", shapes.val))
     }
@@ -739,9 +789,9 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
     )
     val_loader = None
     if args.val_every > 0 and args.val_pairs > 0:
-        val_mix = parse_protocol_mix(args.val_protocol_mix) if args.val_protocol_mix else mix
         keys = validation_keys(
-            len(datasets["val"]), args.val_pairs, val_mix, args.seed, args.val_points_per_cloud or args.points_per_cloud
+            len(datasets["val"]), args.val_pairs, val_mix, args.seed, args.val_points_per_cloud or args.points_per_cloud,
+            args.scan_points_per_cloud,
         )
         val_loader = DataLoader(
             datasets["val"], batch_sampler=fixed_pair_batches(keys, args.val_batch_size or args.batch_size), **options,

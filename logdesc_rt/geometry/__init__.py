@@ -12,18 +12,25 @@ import numpy as np
 from ..config import GeometryConfig
 from ..validation import as_points, check_not_degenerate
 from .edge_features import EDGE_FEATURE_CHANNELS, edge_features
-from .invariant_features import INVARIANT_EDGE_CHANNELS, invariant_edge_features
+from .invariant_features import (
+    CHIRAL_EDGE_CHANNELS,
+    INVARIANT_EDGE_CHANNELS,
+    chiral_edge_channels,
+    invariant_edge_features,
+)
 from .neighbours import drop_self, knn_excluding_self, nearest_neighbours
 from .normals import umbrella_normals
 from .pca import PcaFeatures, pca_features
 
 __all__ = [
     "EDGE_FEATURE_CHANNELS",
+    "CHIRAL_EDGE_CHANNELS",
     "INVARIANT_EDGE_CHANNELS",
     "GeometryConfig",
     "PcaFeatures",
     "PointGeometry",
     "compute_geometry",
+    "chiral_edge_channels",
     "edge_features",
     "invariant_edge_features",
     "knn_excluding_self",
@@ -81,8 +88,12 @@ def compute_geometry(points, config: GeometryConfig = GeometryConfig()) -> Point
     else:
         normals = umbrella_normals(points, neighbour_index, pca.lrf, config.umbrella_area_temperature)
     shape_features = np.stack([pca.anisotropy, pca.planarity, pca.omnivariance], axis=1)
-    if config.edge_layout == "invariant":
+    if config.edge_layout in ("invariant", "chiral"):
         edges = invariant_edge_features(points, shape_features, normals, neighbour_index, config.pca_radius)
+        if config.edge_layout == "chiral":
+            gate = (pca.anisotropy - pca.planarity) * pca.planarity
+            chiral = chiral_edge_channels(points, normals, pca.lrf, gate, neighbour_index)
+            edges = np.concatenate([edges, chiral], axis=2)
     else:
         edges = edge_features(points, shape_features, pca.lrf, normals, neighbour_index)
     return PointGeometry(

@@ -21,6 +21,21 @@ Channel layout of ``edges[i, j]`` for point i and its j-th neighbour m = neighbo
     4      (n_i . e)(n_m . e)(n_i . n_m)  (sign of the bend, independent of normal signs)
     5:8    A_i, P_i, O_i / R^2            (anisotropy, planarity, omnivariance of the point)
     8:11   A_m - A_i, P_m - P_i, (O_m - O_i) / R^2
+
+The ``"chiral"`` layout (v4) appends two channels that change sign under a reflection, so that a
+point can be told from its mirror twin (every channel above is unchanged by a reflection), while
+staying even in every axis sign, hence invariant to rotations, translations and normal signs.
+With u_i the LRF's major axis, w_i its normal axis (:mod:`.pca`) and l1 >= l2 >= l3 its eigenvalues:
+
+    11     cbrt(((n_i x n_m) . e)(n_i . e)(n_m . e))                     (twist across the edge)
+    12     cbrt(g_i ((u_i x w_i) . e)(u_i . e)(w_i . e)),  g_i = (l1 - l2)(l2 - l3) / l1^2
+                                                                          (the edge's octant in i's frame)
+
+A triple product is a pseudo-scalar (odd under a reflection); each dot product that repeats an
+axis cancels that axis's sign. The gate g_i = (A_i - P_i) P_i vanishes where u or w is undefined
+(two equal eigenvalues), so channel 12 is continuous where the frame flips. On a plane, where
+every point is its own mirror image, both read 0. The cube root keeps the small products of
+smooth surfaces (third order in the bend) in a range the first layer can use.
 """
 
 from __future__ import annotations
@@ -30,6 +45,7 @@ import numpy as np
 from ..config import EDGE_CHANNELS
 
 INVARIANT_EDGE_CHANNELS = EDGE_CHANNELS["invariant"]  # the layout below; one number for all
+CHIRAL_EDGE_CHANNELS = EDGE_CHANNELS["chiral"]
 
 
 def invariant_edge_features(
@@ -71,3 +87,41 @@ def invariant_edge_features(
     edges[:, :, 5:8] = scaled_shape[:, None, :]
     edges[:, :, 8:11] = scaled_shape[neighbour_index] - scaled_shape[:, None, :]
     return edges
+
+
+def chiral_edge_channels(
+    points: np.ndarray,
+    normals: np.ndarray,
+    lrf: np.ndarray,
+    eigen_gate: np.ndarray,
+    neighbour_index: np.ndarray,
+) -> np.ndarray:
+    """The two reflection-odd channels 11 and 12 of the ``"chiral"`` layout (module docstring).
+
+    Args:
+        points: (N, 3) positions, network units.
+        normals: (N, 3) unit normals; their signs do not matter.
+        lrf: (N, 3, 3) local frames, columns (u, v, w); the signs of u and w do not matter.
+        eigen_gate: (N,) g_i = (A_i - P_i) P_i, in [0, 1].
+        neighbour_index: (N, k) neighbour indices.
+
+    Returns:
+        (N, k, 2) float32.
+    """
+    offsets = points[neighbour_index] - points[:, None, :]
+    distance = np.linalg.norm(offsets, axis=2)
+    direction = offsets / np.where(distance > 0.0, distance, 1.0)[..., None]
+    neighbour_normals = normals[neighbour_index]
+    normal_i_offset = np.einsum("nkc,nc->nk", direction, normals)
+    normal_m_offset = np.einsum("nkc,nkc->nk", direction, neighbour_normals)
+    twist = np.einsum("nkc,nkc->nk", np.cross(normals[:, None, :], neighbour_normals), direction)
+    major, normal_axis = lrf[:, :, 0], lrf[:, :, 2]
+    octant = (
+        np.einsum("nkc,nc->nk", direction, np.cross(major, normal_axis))
+        * np.einsum("nkc,nc->nk", direction, major)
+        * np.einsum("nkc,nc->nk", direction, normal_axis)
+    )
+    channels = np.empty(neighbour_index.shape + (2,), dtype=np.float32)
+    channels[:, :, 0] = np.cbrt(twist * normal_i_offset * normal_m_offset)
+    channels[:, :, 1] = np.cbrt(eigen_gate[:, None] * octant)
+    return channels

@@ -205,7 +205,7 @@ def _summary_line(result) -> str:
     return (
         f"# {verdict}: confidence {result.confidence:.3f}, fitness {result.fitness:.3f}, inlier RMSE {rmse}, "
         f"{len(result.correspondences)} matches, pose from {result.pose_estimator}, "
-        f"{result.timings['total']:.2f} s"
+        f"{result.timings['total']:.2f} s" + ("" if result.reason is None else f" ({result.reason})")
     )
 
 
