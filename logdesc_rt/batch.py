@@ -1,16 +1,21 @@
 """Register many pairs: a local process pool (default) or a Ray cluster, streamed and resumable.
 
-    if __name__ == "__main__":   # worker processes are spawned: guard a script's main code
-        records = register_many([("a.ply", "b.ply"), ("b.ply", "c.ply")], output="results.jsonl")
+    records = register_many([("a.ply", "b.ply"), ("b.ply", "c.ply")], output="results.jsonl")
+
+Local workers are started by loky (BSD; joblib's executor): fork + exec of a fresh interpreter
+that never re-runs the caller's script, so a script without an ``if __name__ == "__main__":``
+guard, a notebook and ``python - <<EOF`` all work (multiprocessing's spawn re-imports the main
+module in every worker, which kills them in such scripts while the parent waits for ever).
 
 Each worker loads the model once (one :class:`~logdesc_rt.registration.Registrar`, its two
 ONNX sessions with ``cores / workers`` onnxruntime threads) and registers the pairs it is
 handed. Every pair gives one JSON record, written to ``output`` (JSON lines, one record a
 line, flushed) as soon as it finishes. A pair that fails (unreadable file, degenerate cloud,
-too few matches) gives an error record; the run goes on. With ``resume=True`` pairs whose
-record is already in ``output`` are skipped, so an interrupted run continues where it stopped:
-a pose, or an error the pair itself settles (:class:`~logdesc_rt.errors.RegistrationError`,
-e.g. too few matches: the same clouds, options and seed give it again). Other error records
+a worker that died) gives an error record; the run goes on. A pair the pipeline cannot register
+(too few matches) is a result like any other: ``success`` false, with its ``reason``. With
+``resume=True`` pairs whose record is already in ``output`` are skipped, so an interrupted run
+continues where it stopped: a result, or an error the pair itself settles (a
+:class:`~logdesc_rt.errors.RegistrationError` record of an older version). Other error records
 (an unreadable file, a worker that died) are retried: the file may have been mended.
 
 Record keys (the JSON-lines format):
@@ -19,7 +24,8 @@ Record keys (the JSON-lines format):
   from its position), ``source`` / ``target``: the paths, or null for in-memory arrays;
 - ``ok``: true when the pipeline produced a pose. Then ``transformation`` (4 x 4 nested lists,
   source -> target frame), ``transformation_before_refinement``, ``success``, ``confidence``,
-  ``fitness``, ``inlier_rmse`` (null without inliers), ``max_correspondence_distance``,
+  ``reason`` (null for a success), ``fitness``, ``inlier_rmse`` (null without inliers),
+  ``max_correspondence_distance``,
   ``correspondence_count``, ``pose_estimator``, ``refinement``, ``subsampled``, ``icp``,
   ``timings_s`` (seconds per stage);
 - ``ok`` false: ``error`` = ``{"type": exception class name, "message": ...}``.
@@ -38,9 +44,8 @@ or pass arrays.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -385,10 +390,14 @@ def _run_local(todo, clouds, workers, threads, model_dir, config, options, finis
         return
     threads = threads or max(1, cores // workers)
     spec = WorkerSpec(threads=threads, model_dir=model_dir, config=config, register_options=options)
-    # spawn, not fork: onnxruntime's and OpenBLAS's threads do not survive a fork safely.
-    context = multiprocessing.get_context("spawn")
-    with _native_threads(threads), ProcessPoolExecutor(
-        max_workers=workers, mp_context=context, initializer=_init_worker, initargs=(spec, clouds)
+    # loky: fork + exec (no fork of onnxruntime's or OpenBLAS's threads), and the workers never
+    # import the caller's __main__; the thread limits reach the children before NumPy loads.
+    from loky import ProcessPoolExecutor
+    from loky.process_executor import BrokenProcessPool as LokyBrokenPool
+
+    environment = {name: str(threads) for name in _NATIVE_THREAD_VARIABLES}
+    with ProcessPoolExecutor(
+        max_workers=workers, initializer=_init_worker, initargs=(spec, clouds), env=environment
     ) as pool:
         pending = {pool.submit(_work, job): job for job in todo}
         while pending:
@@ -397,30 +406,13 @@ def _run_local(todo, clouds, workers, threads, model_dir, config, options, finis
                 job = pending.pop(future)
                 try:
                     record = future.result()
-                except BrokenProcessPool as error:
+                except (BrokenProcessPool, LokyBrokenPool) as error:
                     # A worker died (out of memory, a crash in native code): the pairs it held
                     # and those still queued get error records; a resumed run retries them.
                     record = _error_record(job, "WorkerCrashed", f"a worker process died: {error}")
                 except Exception as error:  # e.g. the model failed to load in the worker
                     record = _error_record(job, type(error).__name__, str(error))
                 finished(record)
-
-
-@contextmanager
-def _native_threads(threads: int) -> Iterator[None]:
-    """Spawned workers start with OpenMP / OpenBLAS / MKL limited to ``threads`` threads (the
-    variables must be set before NumPy loads in the child); the parent's values come back."""
-    saved = {name: os.environ.get(name) for name in _NATIVE_THREAD_VARIABLES}
-    try:
-        for name in _NATIVE_THREAD_VARIABLES:
-            os.environ[name] = str(threads)
-        yield
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
 
 
 def _error_record(job: PairJob, kind: str, message: str) -> dict:

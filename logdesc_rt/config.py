@@ -123,7 +123,7 @@ class NormalizationConfig(_DictMixin):
 
     target_radius: float = 1.0
     stray_neighbours: int = 6
-    stray_ratio: float = 6.0
+    stray_ratio: float = 3.0
 
     def __post_init__(self) -> None:
         if not self.target_radius > 0:

@@ -9,10 +9,13 @@ nearest neighbour is much farther than is typical in its cloud:
     stray_i  <=>  d_k(i) > ratio * median_j d_k(j)
 
 with d_k the distance to the k-th nearest other point. Surface points sit at about the sampling
-spacing from their neighbours, even where the density falls off fourfold (grazing angles, ModelNet's
-uneven samples), so a ratio of 6 leaves them alone, while a point (or a clump of fewer than k
-points) in empty space is many spacings from anything. Clutter that is itself a dense surface is
-not stray, and stays: it is geometry, and the matcher's dustbin deals with it.
+spacing from their neighbours, while a point (or a clump of fewer than k points) in empty space
+is many spacings from anything. Measured with k = 6 (``NormalizationConfig``'s defaults): a ratio
+of 3 sets aside 0.02 % of the points of ModelNet partial pairs (at most 0.5 % of a cloud), 0.5 %
+of simulated scan views (the sparse rims of grazing surfaces) and 0.2 % of a real Bunny scan,
+and catches 41 % of uniform outliers in a cloud's grown bounding box (the rest sit near the
+object, where they cannot move the scale much); a ratio of 6 caught 7 %. Clutter that is itself
+a dense surface is not stray, and stays: it is geometry, and the matcher's dustbin deals with it.
 
 The test reads distances only, so it is unchanged by any rotation, translation or uniform scale
 of the cloud, and by the order of its points (the same points are flagged). Stray points are set

@@ -6,10 +6,11 @@ per-point attribute (normals, colours, descriptors) alongside the coordinates.
 Farthest-point sampling picks the same points (same indices, same order) wherever the cloud
 sits and however it is turned: it works on coordinates centred on the centroid, and distances
 within a tiny relative tolerance count as ties, which go to the lowest index (so round-off of a
-1 km shift or a rotation cannot reorder a lattice's equal distances). The voxel grid is
-axis-aligned and anchored at the cloud's minimum corner: it depends on the frame by nature.
-:func:`working_subset`, the one choice of the points the networks see, is used by the runtime
-and by training alike.
+1 km shift or a rotation cannot reorder a lattice's equal distances). :func:`voxel_downsample`
+is axis-aligned and anchored at the cloud's minimum corner: it depends on the frame by nature,
+so :func:`working_subset` builds its grid in the cloud's principal frame
+(:func:`principal_frame_coordinates`) instead. :func:`working_subset`, the one choice of the
+points the networks see, is used by the runtime and by training alike.
 """
 
 from __future__ import annotations
@@ -141,7 +142,7 @@ def voxel_downsample(points, voxel_size: float) -> np.ndarray:
     other points (prefer :func:`farthest_point_sampling` where that matters). It is anchored at
     the cloud's minimum corner: point p falls in voxel
     ``floor((p - min(points)) / voxel_size)``. Each occupied voxel is represented by its
-    point nearest the mean of the voxel's points (lowest index on ties), so the result is
+    point nearest the mean of the voxel's points (lowest index on ties, up to round-off), so the result is
     a subset of the input, unlike Open3D's averaging ``voxel_down_sample``.
 
     Args:
@@ -196,13 +197,32 @@ def voxel_downsample(points, voxel_size: float) -> np.ndarray:
     ) / members[:, None]
     distance_to_mean = np.sum((local - voxel_means[voxel_of_point]) ** 2, axis=1)
 
-    # In each voxel, the first point (in index order) at the voxel's least distance wins.
+    # In each voxel, the first point (in index order) at the voxel's least distance wins;
+    # distances within round-off tie (a voxel of two points: both equally far from their mean).
     sorted_distance = distance_to_mean[order]
     least_distance = np.minimum.reduceat(sorted_distance, np.flatnonzero(starts_voxel))
-    candidates = np.flatnonzero(sorted_distance == least_distance[voxel_of_sorted])
+    tolerance = FPS_TIE_TOLERANCE * voxel_size**2
+    candidates = np.flatnonzero(sorted_distance <= least_distance[voxel_of_sorted] + tolerance)
     candidate_voxels = voxel_of_sorted[candidates]
     first_in_voxel = np.concatenate([[True], candidate_voxels[1:] != candidate_voxels[:-1]])
     return np.sort(order[candidates[first_in_voxel]]).astype(np.int64)
+
+
+def principal_frame_coordinates(points: np.ndarray) -> np.ndarray:
+    """(N, 3) coordinates of ``points`` in their own principal frame: centred on the centroid,
+    along the principal axes (largest variance first), each axis signed so that the third
+    moment along it is positive. The same for the cloud wherever it sits and however it is
+    turned, except where two principal variances tie or a third moment vanishes (a shape with
+    that symmetry), where the frame is ambiguous.
+
+    Args:
+        points: (N, 3) float64 finite coordinates.
+    """
+    centred = points - points.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)  # rows: principal axes
+    coordinates = centred @ axes.T
+    signs = np.where(np.sum(coordinates**3, axis=0) < 0.0, -1.0, 1.0)
+    return coordinates * signs
 
 
 def working_subset(
@@ -218,9 +238,11 @@ def working_subset(
     seeded uniform draw (the same indices for the same point count, wherever the cloud sits).
     Stray points (:mod:`.outliers`) are then dropped, so that neither the scale nor the
     sampling spends anything on them (unless fewer than ``min_points`` would remain). A cloud
-    still larger than ``max_points`` is then subsampled: ``"fps"`` by farthest-point sampling
-    (frame-independent), ``"voxel"`` by a grid sized to keep about ``2 * max_points`` cells of a
-    surface, trimmed by farthest-point sampling (frame-dependent, see :func:`voxel_downsample`).
+    still larger than ``max_points`` is then subsampled: ``"fps"`` by farthest-point sampling,
+    ``"voxel"`` by a grid in the cloud's principal frame sized to keep about ``2 * max_points``
+    cells of a surface, trimmed by farthest-point sampling. Both give the same indices wherever
+    the cloud sits and however it is turned (the voxel grid not where the principal frame is
+    ambiguous: see :func:`principal_frame_coordinates`).
 
     Args:
         points: (N, 3) finite coordinates, any unit.
@@ -246,11 +268,13 @@ def working_subset(
         return kept.astype(np.int64)
     candidates = points[kept]
     if method == "voxel":
+        # In the cloud's own principal frame, so that the grid turns and moves with the cloud.
+        canonical = principal_frame_coordinates(candidates)
         # A scan is a surface: with its two largest extents a x b, cells of side
         # sqrt(a b / (2 max_points)) leave about 2 * max_points occupied, then FPS trims.
-        largest_two = np.sort(np.ptp(candidates, axis=0))[1:]
+        largest_two = np.sort(np.ptp(canonical, axis=0))[1:]
         voxel = float(np.sqrt(np.prod(largest_two) / (2 * max_points)))
-        kept = kept[voxel_downsample(candidates, max(voxel, 1e-12))]
+        kept = kept[voxel_downsample(canonical, max(voxel, 1e-12))]
         candidates = points[kept]
         if len(kept) <= max_points:
             return kept.astype(np.int64)

@@ -153,3 +153,37 @@ def test_resume_keeps_a_too_few_matches_verdict_and_retries_other_errors(pairs, 
     assert seen == ["first"], "the verdict is kept, the crash retried"
     assert again[0] == first[0] and again[1]["ok"]
     assert [record["id"] for record in _lines(output)] == ["unmatched", "first", "first"]
+
+
+# The same two pairs registered by two local workers, written out by a script with no main guard.
+_UNGUARDED_SCRIPT = """
+import json, sys
+from logdesc_rt.batch import comparable, register_many
+from logdesc_rt.demo import make_demo_pair
+first, second = make_demo_pair(seed=1), make_demo_pair(seed=2)
+records = register_many([("first", first.source, first.target), ("second", second.source, second.target)],
+                        workers=2, threads_per_worker=1, seed=0, progress=False)
+print(json.dumps([comparable(record) for record in records]))
+"""
+
+
+@pytest.mark.parametrize("how", ["script without a main guard", "python - (stdin)"])
+def test_register_many_with_workers_runs_from_an_unguarded_script_and_from_stdin(pairs, tmp_path, how):
+    """multiprocessing's spawn re-imports the caller's main module in every worker: such a script
+    killed its workers at start-up and left the parent waiting for ever. Each run here is a
+    subprocess with a timeout, so a hang fails the test instead of the suite."""
+    import subprocess
+    import sys
+
+    if how.startswith("script"):
+        script = tmp_path / "unguarded.py"
+        script.write_text(_UNGUARDED_SCRIPT)
+        command, stdin = [sys.executable, str(script)], None
+    else:
+        command, stdin = [sys.executable, "-"], _UNGUARDED_SCRIPT
+    finished = subprocess.run(command, input=stdin, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert finished.returncode == 0, finished.stderr[-2000:]
+    records = json.loads(finished.stdout.strip().splitlines()[-1])
+    # One worker, one thread each, from this (guarded) process: the same records.
+    expected = register_many(pairs[:2], workers=1, threads_per_worker=1, seed=0, progress=False)
+    assert records == [comparable(record) for record in expected]
