@@ -16,7 +16,7 @@ pose estimators on logdesc-rt's matches see the same matches:
   MVP-RG table does;
 - ``fpfh_ransac``, ``fpfh_fgr``: Open3D FPFH with the same two Open3D estimators;
 - ``icp_point_to_plane``: Open3D point-to-plane ICP from the identity (user frame);
-- ``logdesc_fsr_icp``, ``fpfh_fgr_icp``: the best learned and the best classical coarse pose,
+- ``logdesc_fsr_icp``, ``fpfh_fgr_icp``, ``fpfh_ransac_icp``: learned and classical coarse poses,
   each refined by the *same* ICP (the package's point-to-plane ICP, what
   ``register(..., refine="point_to_plane")`` runs, correspondences within 5 % of the radius),
   so the pair differs only in where ICP starts.
@@ -50,7 +50,6 @@ import numpy as np
 
 from logdesc_rt import Registrar
 from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
-from logdesc_rt.matching import matches_as_array
 from logdesc_rt.normalization import PairNormalization
 from logdesc_rt.refinement import icp
 from logdesc_rt.registration import DEFAULT_DISTANCE_FRACTION
@@ -62,12 +61,12 @@ DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
 ICP_METHODS = ("icp_point_to_plane",)
 # Refined method -> the coarse method whose pose ICP starts from.
-REFINED_FROM = {"logdesc_fsr_icp": "logdesc_fsr", "fpfh_fgr_icp": "fpfh_fgr"}
+REFINED_FROM = {"logdesc_fsr_icp": "logdesc_fsr", "fpfh_fgr_icp": "fpfh_fgr", "fpfh_ransac_icp": "fpfh_ransac"}
 REFINED_METHODS = tuple(REFINED_FROM)
 ALL_METHODS = (
     LOGDESC_METHODS + tuple(VERIFIED_METHODS) + DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + REFINED_METHODS
 )
-OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp",)
+OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp", "fpfh_ransac_icp")
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
 
@@ -298,8 +297,10 @@ class MethodRunner:
         normalization = PairNormalization.fit(source, target) if classical else None
         if any(m.startswith("fpfh") for m in classical):
             results.update(self._fpfh(source, target, normalization, seed))
-            if "fpfh_fgr_icp" in self.methods:
-                results["fpfh_fgr_icp"] = self._refined(source, target, results["fpfh_fgr"], normalization.scale)
+            for refined in ("fpfh_fgr_icp", "fpfh_ransac_icp"):
+                if refined in self.methods:
+                    coarse = results[REFINED_FROM[refined]]
+                    results[refined] = self._refined(source, target, coarse, normalization.scale)
         if "icp_point_to_plane" in classical:
             results["icp_point_to_plane"] = self._icp(source, target, normalization.scale)
         return {name: results[name] for name in self.methods}
@@ -318,9 +319,10 @@ class MethodRunner:
         pair = self.registrar.match(source, target)
         match_seconds = time.perf_counter() - start
         results = {}
-        if len(pair.source_index) != len(source) or len(pair.target_index) != len(target):
-            raise ValueError("benchmark clouds must not exceed the model's working size (no subsampling)")
-        pred_match = matches_as_array(pair.matches, len(source))
+        # The matches as a target index per source point of the clouds as given (the working
+        # subsets may leave points out: larger clouds, stray points).
+        pred_match = np.full(len(source), -1, dtype=np.int64)
+        pred_match[pair.correspondences[:, 0]] = pair.correspondences[:, 1]
         wanted = set(self.methods)
         if "logdesc_fsr_icp" in wanted:
             wanted.add("logdesc_fsr")
@@ -358,12 +360,10 @@ class MethodRunner:
     def _verified(self, pair, refine, seed, match_seconds, pred_match) -> MethodResult:
         """register()'s default pipeline from the matches: verified candidates, the flag."""
         start = time.perf_counter()
-        try:
-            result = self.registrar.register_matches(pair, refine=refine, seed=seed)
-        except (RegistrationError, InvalidPointCloudError):
-            return MethodResult(np.eye(4), match_seconds, True, pred_match, flagged_success=False, confidence=0.0)
+        result = self.registrar.register_matches(pair, refine=refine, seed=seed)  # a failure is a result
         seconds = match_seconds + time.perf_counter() - start
-        return MethodResult(result.transformation, seconds, False, pred_match, result.success, result.confidence)
+        failed = result.pose_estimator == "none"  # no pose could be estimated (too few matches)
+        return MethodResult(result.transformation, seconds, failed, pred_match, result.success, result.confidence)
 
     def _fpfh(self, source, target, normalization: PairNormalization, seed) -> dict[str, MethodResult]:
         start = time.perf_counter()
@@ -391,7 +391,7 @@ class MethodRunner:
             source, target = _cloud(source), _cloud(target)
         pred_match = mutual_nearest_descriptors(source_features, target_features)
         results = {}
-        wanted = set(self.methods) | ({f"{prefix}_fgr"} if f"{prefix}_fgr_icp" in self.methods else set())
+        wanted = set(self.methods) | {REFINED_FROM[m] for m in self.methods if m in REFINED_FROM}
         for name, estimate in (
             (f"{prefix}_ransac", lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
             (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters, seed)),

@@ -136,7 +136,7 @@ def make_scan_pair(
     dense_normals,
     rng: np.random.Generator,
     *,
-    points_per_cloud: int = 1024,
+    points_per_cloud: int | None = 1024,
     normalization_config: NormalizationConfig = NormalizationConfig(),
     min_points: int = 31,
     exact_size: bool = False,
@@ -148,7 +148,10 @@ def make_scan_pair(
             thousand: each view keeps a few hundred to a few thousand of its half).
         dense_normals: (P, 3) unit normals, any signs.
         rng: the generator every draw comes from.
-        points_per_cloud: the working size (each cloud is cut to at most this many).
+        points_per_cloud: the working size (each cloud is cut to at most this many by the
+            runtime's :func:`~logdesc_rt.sampling.working_subset`, stray points set aside), or
+            None for the raw views, stray points and all, as a scanner would deliver them
+            (benchmarks: the registration under test chooses its own points).
         normalization_config: the network frame and the stray-point test (the runtime's).
         min_points: the geometry's minimum cloud size (the stray test never leaves fewer).
         exact_size: both clouds must hold exactly ``points_per_cloud`` points (training stacks
@@ -171,6 +174,8 @@ def make_scan_pair(
         )
     halves = rng.permutation(len(dense_points))
     source_members, target_members = halves[: len(halves) // 2], halves[len(halves) // 2 :]
+    if exact_size and points_per_cloud is None:
+        raise ValueError("exact_size needs a points_per_cloud")
     needed = points_per_cloud if exact_size else MIN_VIEW_POINTS
     for attempt in range(_MAX_ATTEMPTS):
         thin = attempt < _MAX_ATTEMPTS // 2
@@ -179,8 +184,11 @@ def make_scan_pair(
         second = _second_direction(first, view_angle, rng)
         source_view, source_origin = _view(dense_points[source_members], dense_normals[source_members], first, rng, thin)
         target_view, target_origin = _view(dense_points[target_members], dense_normals[target_members], second, rng, thin)
-        source_keep = working_subset(source_view, points_per_cloud, "fps", normalization_config, min_points)
-        target_keep = working_subset(target_view, points_per_cloud, "fps", normalization_config, min_points)
+        if points_per_cloud is None:  # the raw views
+            source_keep, target_keep = np.arange(len(source_view)), np.arange(len(target_view))
+        else:
+            source_keep = working_subset(source_view, points_per_cloud, "fps", normalization_config, min_points)
+            target_keep = working_subset(target_view, points_per_cloud, "fps", normalization_config, min_points)
         if min(len(source_keep), len(target_keep)) >= needed:
             break
     else:

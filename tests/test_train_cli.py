@@ -383,3 +383,29 @@ def test_a_new_cycle_warms_up_and_decays_again_from_its_start():
     # Without --decay-steps the cycle runs to --max-steps.
     second.decay_steps = None
     assert lr_factor(9500, second) == pytest.approx(0.05) and lr_factor(8525, second) > 0.5
+
+
+def test_warm_start_into_a_wider_edge_layout_keeps_the_function():
+    """--init-from a v3-layout state into a chiral-layout network: the two new input channels get
+    zero weights, so at step 0 the network ignores them and computes what the old one did."""
+    from training.config import EDGE_CHANNELS, ModelConfig
+    from training.model import LoGDescMatcher
+    from training.train import warm_start
+
+    torch.manual_seed(0)
+    old_config = ModelConfig.preset("tiny_v3")
+    old = LoGDescMatcher(old_config).eval()
+    new = LoGDescMatcher(old_config.replace(edge_channels=EDGE_CHANNELS["chiral"])).eval()
+    warm_start(new, old.state_dict())
+    rng = np.random.default_rng(0)
+    edges = torch.from_numpy(rng.normal(size=(1, 64, 30, EDGE_CHANNELS["chiral"])).astype(np.float32))
+    points = torch.from_numpy(rng.normal(size=(1, 64, 3)).astype(np.float32))
+    normals = torch.nn.functional.normalize(torch.from_numpy(rng.normal(size=(1, 64, 3)).astype(np.float32)), dim=2)
+    with torch.no_grad():
+        expected = old.describe(edges[..., : EDGE_CHANNELS["invariant"]], points, normals)
+        got = new.describe(edges, points, normals)
+    assert torch.allclose(got, expected, atol=1e-6)
+    # A state that differs in another way is refused, naming the tensor.
+    wrong = {**old.state_dict(), "dustbin_score": torch.zeros(3)}
+    with pytest.raises(ValueError, match="dustbin_score"):
+        warm_start(new, wrong)
