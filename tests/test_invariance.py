@@ -223,6 +223,59 @@ def test_v3_graphs_hold_no_pairwise_index_or_gather(v3_registrar):
         assert "MultiHeadAttention" in operators, name
 
 
+def _pairwise_tensors(path: Path, feeds: dict[str, np.ndarray]) -> list[tuple[str, tuple[int, ...]]]:
+    """Every tensor of the graph at ``path`` (run on ``feeds``) with two point axes, except the
+    scores output and the product that the scores' node reads."""
+    onnx = pytest.importorskip("onnx")
+    import onnxruntime
+
+    model = onnx.load(str(path))
+    outputs = {output.name for output in model.graph.output}
+    allowed = set(outputs) | {name for node in model.graph.node if set(node.output) & outputs for name in node.input}
+    for node in model.graph.node:  # expose every intermediate tensor
+        for name in node.output:
+            if name and name not in outputs:
+                model.graph.output.append(onnx.ValueInfoProto(name=name))
+                outputs.add(name)
+    session = onnxruntime.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    point_counts = {value.shape[1] for value in feeds.values()}
+    names = [output.name for output in session.get_outputs()]
+    return [
+        (name, value.shape)
+        for name, value in zip(names, session.run(None, feeds), strict=True)
+        if isinstance(value, np.ndarray) and sum(size in point_counts for size in value.shape) >= 2 and name not in allowed
+    ]
+
+
+def test_the_bundled_graphs_hold_no_point_by_point_tensor_but_the_scores():
+    """Memory bounded by construction: run at 67 x 53 points, no intermediate tensor of the
+    shipped graphs has two point axes (attention's logits stay inside the fused kernel), except
+    the matcher's scores themselves."""
+    registrar = Registrar()
+    rng = np.random.default_rng(0)
+    source, target = 67, 53
+    channels = registrar.manifest.geometry.edge_channels
+    k = registrar.manifest.geometry.umbrella_neighbours
+    width = registrar.manifest.descriptor_dim
+
+    def cloud(count, columns):
+        return rng.normal(size=(1, count, *columns)).astype(np.float32)
+
+    model_dir = registrar.network.model_dir
+    assert _pairwise_tensors(
+        model_dir / "descriptor.onnx",
+        {"edges": cloud(source, (k, channels)), "points": cloud(source, (3,)), "normals": cloud(source, (3,))},
+    ) == []
+    assert _pairwise_tensors(
+        model_dir / "matcher.onnx",
+        {
+            "descriptors_source": cloud(source, (width,)), "descriptors_target": cloud(target, (width,)),
+            "normals_source": cloud(source, (3,)), "normals_target": cloud(target, (3,)),
+            "points_source": cloud(source, (3,)), "points_target": cloud(target, (3,)),
+        },
+    ) == []
+
+
 # -- the bundled (trained) model -----------------------------------------------------------
 
 
