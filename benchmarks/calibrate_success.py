@@ -54,6 +54,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from logdesc_rt import Registrar  # noqa: E402
+from logdesc_rt.config import CANDIDATE_ESTIMATORS  # noqa: E402
 from logdesc_rt.config import VERIFICATION_FEATURES as FEATURES  # noqa: E402
 from logdesc_rt.synthetic import make_pair  # noqa: E402
 
@@ -176,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     fitting = commands.add_parser("fit", help="features, logistic fit, threshold; writes the report")
     fitting.add_argument("--groups", nargs="+", choices=(*GROUPS, INIT_GROUP), default=[*GROUPS, INIT_GROUP])
     fitting.add_argument("--report", type=Path, default=REPORT, help="report path without suffix")
+    fitting.add_argument("--candidates", nargs="+", default=None, choices=CANDIDATE_ESTIMATORS,
+                         help="the candidate estimators the calibration is fitted with (stored with it in the "
+                              "manifest; default: VerificationConfig's)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
     for command in (collecting, fitting):
@@ -184,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
-        fit(args.groups, args.cache, args.report, args.manifest)
+        fit(args.groups, args.cache, args.report, args.manifest, args.candidates)
     return 0
 
 
@@ -230,7 +234,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     candidates = [
         (name, normalization.pose_to_user_frame(pose))
         for name, pose in candidate_poses(source_matched, target_matched, data["confidence"],
-                                          top_k_fraction=config.top_k_fraction)
+                                          top_k_fraction=config.top_k_fraction, estimators=config.candidates)
     ]
     if with_init:
         rng = np.random.default_rng([SEED, INIT_GROUP_NUMBER, int.from_bytes(path.stem.encode(), "little") % 2**32])
@@ -346,13 +350,16 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def fit(groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None) -> None:
+def fit(
+    groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None,
+    candidates: tuple[str, ...] | None = None,
+) -> None:
     import dataclasses
 
     from logdesc_rt.config import VerificationConfig
     from logdesc_rt.verification import logistic_confidence
 
-    base = VerificationConfig()
+    base = VerificationConfig() if candidates is None else VerificationConfig(candidates=tuple(candidates))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
     if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
@@ -438,6 +445,7 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "weights": list(fitted.weights),
         "bias": fitted.bias,
         "success_threshold": fitted.success_threshold,
+        "candidates": list(fitted.candidates),
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

@@ -160,6 +160,12 @@ class MatchingConfig(_DictMixin):
 
 # Verification features, in the order of VerificationConfig.weights (logdesc_rt/verification.py
 # computes them; its module docstring defines each).
+# Estimators of candidate poses (logdesc_rt.verification): the paper's FSR, 3-point RANSAC,
+# confidence-weighted SVD on every match, SVD on the most confident share, and the maximum
+# consistent core of the matches (logdesc_rt/pose/consistency.py).
+CANDIDATE_ESTIMATORS = ("fsr", "ransac", "svd", "top_k", "core")
+POSE_ESTIMATORS = ("auto", "fsr", "svd", "ransac", "core")
+
 VERIFICATION_FEATURES = (
     "fitness",
     "sharpness",
@@ -202,6 +208,9 @@ class VerificationConfig(_DictMixin):
         bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
         success_threshold: success when confidence >= this.
         seed: seeds the scoring subsets.
+        candidates: the estimators whose poses are verified (a calibration is fitted with
+            one set: its ``agreement`` feature counts among them). The default is the set
+            v3's calibration was fitted with; v4's manifest adds "core".
     """
 
     top_k_fraction: float = 0.25
@@ -221,9 +230,17 @@ class VerificationConfig(_DictMixin):
     bias: float = -2.2202
     success_threshold: float = 0.3960
     seed: int = 0
+    candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "weights", tuple(float(w) for w in self.weights))
+        object.__setattr__(self, "candidates", tuple(str(name) for name in self.candidates))
+        unknown = set(self.candidates) - set(CANDIDATE_ESTIMATORS)
+        if unknown or not self.candidates:
+            raise ValueError(
+                f"VerificationConfig.candidates: {list(self.candidates)} must be a non-empty subset of "
+                f"{CANDIDATE_ESTIMATORS}"
+            )
         if len(self.weights) != len(VERIFICATION_FEATURES):
             raise ValueError(
                 f"VerificationConfig.weights: {len(self.weights)} values, expected one per feature "
@@ -366,7 +383,6 @@ class RansacConfig(_DictMixin):
 
 
 SUBSAMPLING_METHODS = ("fps", "voxel")
-POSE_ESTIMATORS = ("auto", "fsr", "svd", "ransac")
 REFINEMENT_METHODS = ("point_to_point", "point_to_plane")
 
 

@@ -37,6 +37,7 @@ from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
 from .config import (
+    CANDIDATE_ESTIMATORS,
     POSE_ESTIMATORS,
     REFINEMENT_METHODS,
     SUBSAMPLING_METHODS,
@@ -48,7 +49,7 @@ from .config import (
 from .pose import evaluate_registration
 from .pose.evaluation import check_rigid_transformation
 from .refinement import IcpResult, icp
-from .verification import CANDIDATE_ESTIMATORS, PoseVerifier, VerificationResult, candidate_poses, estimate_pose
+from .verification import PoseVerifier, VerificationResult, candidate_poses, estimate_pose
 from .sampling import working_subset
 from .validation import as_points, check_not_degenerate
 
@@ -291,6 +292,9 @@ class PairMatches:
         """
         config = self.config if config is None else config
         self._require_matches()
+        estimators = config.verification.candidates
+        if config.estimator not in ("auto", *estimators):  # a user's choice outside the model's set
+            estimators = (*estimators, config.estimator)
         poses = candidate_poses(
             self.source_network[self.matches.source_index],
             self.target_network[self.matches.target_index],
@@ -298,6 +302,7 @@ class PairMatches:
             config.fsr,
             config.ransac,
             config.verification.top_k_fraction,
+            estimators,
         )
         return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
 

@@ -447,3 +447,33 @@ def test_evaluate_registration_property(source, target, distance):
         return
     assert 0.0 <= result.fitness <= 1.0
     assert np.isfinite(result.inlier_rmse) if result.fitness > 0 else np.isnan(result.inlier_rmse)
+
+
+def test_max_core_finds_the_densest_consistent_set():
+    from logdesc_rt.pose.consistency import max_core
+
+    graph = np.zeros((9, 9), dtype=bool)
+    clique = [1, 3, 4, 6, 8]
+    graph[np.ix_(clique, clique)] = True
+    graph[0, 2] = graph[2, 0] = graph[2, 5] = graph[5, 2] = True  # a sparse chain beside it
+    assert max_core(graph).tolist() == clique
+
+
+def test_the_consistency_core_holds_where_most_matches_are_wrong():
+    """85 % wrong matches: FSR (meant for mostly right ones) breaks, the maximum consistent core
+    of the matches does not; and it is deterministic."""
+    from logdesc_rt.metrics import rotation_error_deg
+    from logdesc_rt.pose import fsr
+    from logdesc_rt.pose.consistency import consistency_pose
+
+    rng = np.random.default_rng(0)
+    source = rng.uniform(-1, 1, size=(400, 3))
+    truth = Rotation.random(random_state=3).as_matrix()
+    target = source @ truth.T + [0.3, -0.2, 0.5] + rng.normal(scale=0.01, size=source.shape)
+    wrong = rng.random(len(source)) < 0.85
+    target[wrong] = rng.uniform(-1, 1, size=(int(wrong.sum()), 3))
+    confidences = rng.uniform(0.2, 1.0, size=len(source))
+    pose = consistency_pose(source, target, confidences, noise_bound=0.05)
+    assert rotation_error_deg(pose[:3, :3], truth) < 1.0
+    assert rotation_error_deg(fsr(source, target, confidences).transformation[:3, :3], truth) > 5.0
+    np.testing.assert_array_equal(pose, consistency_pose(source, target, confidences, noise_bound=0.05))
