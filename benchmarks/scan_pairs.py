@@ -12,6 +12,11 @@ trained on (``training.data.split_train_val_test``); ``--split val`` is v4's val
 for model selection. Pair i uses dense shape ``i % S`` and ``default_rng([seed, 11, i])``.
 
     python benchmarks/scan_pairs.py [--pairs 60] [--split test] [--model-dir DIR --out DIR]
+        [--protocol partial]   # the same split's 1024-point shapes under a shape protocol instead
+
+``--protocol`` other than ``scan`` builds the split's pairs of ``logdesc_rt.synthetic`` instead
+(e.g. ``partial``, ``resampled_partial``; both clouds turned, relative rotation of any size), so
+that model selection can check ModelNet-style pairs on the same held-out shapes.
 
 Methods: ``register()`` as a user calls it (verified candidates, the success flag), without and
 with point-to-plane ICP; Open3D FPFH + RANSAC and FPFH + FGR (parameters tuned on ModelNet
@@ -50,6 +55,7 @@ from common import (  # noqa: E402
 from methods import OPEN3D_METHODS, FpfhParameters, MethodRunner, open3d_available  # noqa: E402
 
 from logdesc_rt.scan_simulation import make_scan_pair  # noqa: E402
+from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS  # noqa: E402
 
 METHODS = ("logdesc_auto", "logdesc_auto_icp", "fpfh_ransac", "fpfh_ransac_icp", "fpfh_fgr", "fpfh_fgr_icp")
 PAIR_STREAM = 11  # the second seed word of the pairs' generators
@@ -62,6 +68,28 @@ def scan_shapes(split: str, data_root: Path = DATA_ROOT):
     three_way = split_train_val_test(load_training_sources(data_root))
     names = three_way.test_names if split == "test" else three_way.shapes.val_names
     return load_dense_shapes(data_root).subset(set(names))
+
+
+def shape_pairs(split: str, protocol: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT):
+    """``count`` pairs of a :mod:`logdesc_rt.synthetic` protocol from the split's 1024-point shapes,
+    both clouds turned and the relative rotation of any size."""
+    from logdesc_rt.synthetic import make_pair
+    from training.data import load_training_sources, split_train_val_test
+
+    three_way = split_train_val_test(load_training_sources(data_root))
+    if split == "test":
+        from training.data import split_training_shapes
+
+        held_out = split_training_shapes(load_training_sources(data_root))  # its validation = the test names
+        points, names = held_out.val, held_out.val_ids
+    else:
+        points, names = three_way.shapes.val, three_way.shapes.val_ids
+    for index in range(count):
+        shape = index % len(points)
+        pair = make_pair(points[shape], protocol, np.random.default_rng([seed, PAIR_STREAM, index]),
+                         any_orientation=True, any_relative_rotation=True)
+        yield BenchmarkPair(protocol, index, names[shape], pair.source, pair.target, pair.T_gt, pair.gt_match_src,
+                            pair.normalization.scale)
 
 
 def scan_pairs(split: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT):
@@ -83,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--split", choices=["test", "val"], default="test")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--protocol", default="scan", choices=["scan", *SHAPE_PROTOCOLS])
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--model-dir", type=Path, default=None, help="an exported model instead of the bundled one")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -97,29 +126,40 @@ def main(argv=None) -> int:
         skipped = [m for m in methods if m in OPEN3D_METHODS]
         methods = [m for m in methods if m not in OPEN3D_METHODS]
         print(f"open3d is not installed: skipping {skipped}", file=sys.stderr)
-    stem = f"scan_pairs_{args.split}"
+    stem = f"scan_pairs_{args.split}" if args.protocol == "scan" else f"heldout_{args.protocol}_{args.split}"
     runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
                         baseline_id=runner.parameters.fingerprint())
     sizes = []
-    for pair in tqdm(scan_pairs(args.split, args.pairs, args.seed), total=args.pairs, desc="scan pairs", unit="pair"):
+    pairs = (scan_pairs(args.split, args.pairs, args.seed) if args.protocol == "scan"
+             else shape_pairs(args.split, args.protocol, args.pairs, args.seed))
+    for pair in tqdm(pairs, total=args.pairs, desc=f"{args.protocol} pairs", unit="pair"):
         sizes.append((len(pair.source), len(pair.target)))
         to_run = [m for m in methods if not cache.has(pair.protocol, pair.index, [m])]
         if to_run:
             results = runner.run(pair.source, pair.target, seed=pair.index, methods=to_run)
             cache.add(pair_record(pair, method, result) for method, result in results.items())
 
-    summary = {method: summarize(cache.select("scan", method, range(args.pairs))) for method in methods}
+    summary = {method: summarize(cache.select(args.protocol, method, range(args.pairs))) for method in methods}
     sizes = np.array(sizes)
+    size_text = f"{int(sizes.min())}-{int(sizes.max())} points (median {int(np.median(sizes))})"
+    if args.protocol == "scan":
+        description = (
+            f"{args.pairs} pairs of two simulated scans each (`logdesc_rt/scan_simulation.py`: separate samples, "
+            "sensors 15-90 deg apart, hidden-point removal, density falling with incidence and range, noise along "
+            f"the ray, stray points and box outliers, any relative pose), raw views of {size_text}, of the "
+            f"{args.split} split's dense ModelNet40 shapes (`training.data.split_train_val_test`)."
+        )
+    else:
+        description = (
+            f"{args.pairs} `{args.protocol}` pairs (`logdesc_rt/synthetic.py`; both clouds turned, relative "
+            f"rotation of any size; {size_text}) of the {args.split} split's 1024-point shapes "
+            "(`training.data.split_train_val_test`)."
+        )
     lines = [
-        f"# Simulated range-scan pairs, {args.split} shapes",
+        f"# {'Simulated range-scan' if args.protocol == 'scan' else args.protocol} pairs, {args.split} shapes",
         "",
-        f"{args.pairs} pairs of two simulated scans each (`logdesc_rt/scan_simulation.py`: separate samples, "
-        "sensors 15-90 deg apart, hidden-point removal, density falling with incidence and range, noise along "
-        "the ray, stray points and box outliers, any relative pose), raw views of "
-        f"{int(sizes.min())}-{int(sizes.max())} points (median {int(np.median(sizes))}), of the {args.split} split's "
-        f"dense ModelNet40 shapes (`training.data.split_train_val_test`). The model is "
-        f"{model_description(args.model_dir)}.",
+        f"{description} The model is {model_description(args.model_dir)}.",
         "Success: rotation error < 5 deg and translation error < 5 % of the object's radius. flag P / R: "
         "the runtime's success flag (right among the flagged / flagged among the right). ICP: the package's "
         "point-to-plane ICP from each coarse pose. ms / pair: median wall time on a shared 2-core machine.",
