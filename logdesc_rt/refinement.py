@@ -107,6 +107,7 @@ def icp(
     max_iterations: int = 30,
     tolerance: float = 1e-7,
     adaptive: bool = False,
+    target_normals: np.ndarray | None = None,
 ) -> IcpResult:
     """Refine ``initial`` by iterative closest points.
 
@@ -121,6 +122,9 @@ def icp(
             ``max_distance``) is below this.
         adaptive: after convergence, halve the distance and run again while the inliers hold
             (module docstring); at most 4 stages.
+        target_normals: (M, 3) unit normals of ``target`` for point-to-plane, if the caller
+            has them (verification refines several poses against one target); else estimated
+            here (:func:`estimate_normals`).
 
     Returns:
         :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose at
@@ -155,7 +159,14 @@ def icp(
     source_working = (source - centre) / unit
     target_working = (target - centre) / unit
     tree = KDTree(target_working)
-    normals = estimate_normals(target_working) if method == "point_to_plane" else None
+    normals = None
+    if method == "point_to_plane":
+        if target_normals is None:
+            normals = estimate_normals(target_working)
+        else:
+            normals = np.asarray(target_normals, dtype=np.float64)
+            if normals.shape != target.shape:
+                raise ValueError(f"target_normals: shape {normals.shape}, expected {target.shape}")
 
     pose = to_working @ initial @ from_working
     floor = 0.0
@@ -234,7 +245,9 @@ def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.nda
     arm = source - pivot
     jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)  # (K, 6)
     residual = np.sum((target - source) * normals, axis=1)
-    solution, *_ = np.linalg.lstsq(jacobian, residual, rcond=None)
+    # The 6 x 6 normal equations (K x 6 lstsq was most of ICP's time); lstsq on them still
+    # gives the minimum-norm step where the surface leaves a motion free (a plane, a cylinder).
+    solution, *_ = np.linalg.lstsq(jacobian.T @ jacobian, jacobian.T @ residual, rcond=None)
     rotation = Rotation.from_rotvec(solution[:3]).as_matrix()
     step = np.eye(4)
     step[:3, :3] = rotation

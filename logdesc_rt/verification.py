@@ -309,6 +309,7 @@ class PoseVerifier:
             "point_to_plane",
             max_iterations=self.config.icp_iterations,
             adaptive=True,
+            target_normals=self.target_normals,
         ).transformation
 
     def verify(self, candidates: list[tuple[str, np.ndarray]]) -> VerificationResult:
