@@ -473,7 +473,7 @@ class RuntimeConfig:
         subsampling: working size and method (:class:`SubsamplingConfig`).
         matching: Sinkhorn iterations and match threshold; None uses the model's own.
         estimator: "auto" (every candidate estimator, verified; the best kept, default),
-            or one of "fsr", "svd", "ransac" (that estimator's pose, still verified).
+            or one of "fsr", "svd", "ransac", "core" (that estimator's pose, still verified).
         fsr, ransac: the two robust estimators (network units; also the "auto" candidates).
         verification: hypotheses, scoring and the success flag; None uses the model's own
             (its calibration).

@@ -82,7 +82,7 @@ class RegistrationResult:
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
-            "init" (the caller's initial guess), or "none" (no pose could be estimated: the
+            "core" (see :mod:`logdesc_rt.verification`), "init" (the caller's initial guess), or "none" (no pose could be estimated: the
             identity, see ``reason``).
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
@@ -90,7 +90,8 @@ class RegistrationResult:
             without refinement.
         verification: every distinct hypothesis with its features and confidence (best first).
         config: the runtime configuration used, defaults resolved (working size, matching).
-        subsampled: True if either cloud was larger than the working size.
+        subsampled: True if the network saw fewer points than given of either cloud (larger
+            than the working size, or stray points set aside).
         source_points_used, target_points_used: points the network saw per cloud.
         timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
             refinement (if any), evaluation, and total (their sum).
@@ -186,7 +187,7 @@ class PreparedPair:
         source_index, target_index: (Ns,) / (Mt,) int64, the working subsets' indices.
         normalization: maps the working subsets to network units and poses back.
         source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
-        source_geometry, target_geometry: their kNN, PCA features, normals and (N, k, 15) edges.
+        source_geometry, target_geometry: their kNN, PCA features, normals and (N, k, C) edges.
         timings: stage name -> seconds: load, subsample, geometry.
     """
 
@@ -249,7 +250,8 @@ class PairMatches:
 
     @property
     def subsampled(self) -> bool:
-        """True if either cloud was larger than the working size."""
+        """True if the working subset of either cloud leaves points out (a cloud larger than the
+        working size, or stray points set aside)."""
         return len(self.source_index) < len(self.source_points) or len(self.target_index) < len(
             self.target_points
         )

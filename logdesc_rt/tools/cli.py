@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import POSE_ESTIMATORS
 from ..errors import LogdescError
 from ..metrics import rotation_error_deg
 
@@ -40,9 +41,10 @@ EXIT_ERROR = 2
 EXIT_NOT_SUCCESS = 3
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 ESTIMATOR_HELP = (
-    "auto (default): every candidate pose (FSR, RANSAC, SVD, top-k) is verified on the full clouds "
-    "and the best kept; fsr: the paper's farthest-sampling estimator; svd: confidence-weighted "
-    "least squares on all matches; ransac: 3-point RANSAC. The chosen pose is always verified."
+    "auto (default): every candidate pose of the model's set (FSR, RANSAC, SVD, top-k, and for v4 the "
+    "consistency core) is verified on the full clouds and the best kept; fsr: the paper's "
+    "farthest-sampling estimator; svd: confidence-weighted least squares on all matches; ransac: 3-point "
+    "RANSAC; core: SVD on the largest mutually consistent set of matches. The chosen pose is always verified."
 )
 EPILOG = """\
 formats: PLY, PCD, XYZ/TXT/CSV (x y z in the first columns), NPY ((N, 3+) array), OFF; by suffix.
@@ -575,7 +577,7 @@ def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) 
 
 
 def _add_registration_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimator", choices=("auto", "fsr", "svd", "ransac"), default=None, help=ESTIMATOR_HELP)
+    parser.add_argument("--estimator", choices=POSE_ESTIMATORS, default=None, help=ESTIMATOR_HELP)
     parser.add_argument("--refine", choices=("none", "point_to_point", "point_to_plane"), default=None,
                         help="ICP on the full clouds after the learned pose (default: none)")
     parser.add_argument("--max-correspondence-distance", type=float, default=None, metavar="D",
