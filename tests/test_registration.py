@@ -50,11 +50,24 @@ def test_icp_refinement_tightens_the_pose(registrar, demo_pair):
     assert refined.inlier_rmse <= coarse.inlier_rmse + 1e-9
 
 
-@pytest.mark.parametrize(("estimator", "bound_deg"), [("svd", 15.0), ("ransac", 5.0)])
+@pytest.mark.parametrize(("estimator", "bound_deg"), [("svd", 15.0), ("ransac", 5.0), ("core", 5.0)])
 def test_other_estimators(registrar, demo_pair, estimator, bound_deg):
     """RANSAC is robust; plain SVD fits every match, wrong ones included (measured 7.8 deg)."""
     result = registrar.register(demo_pair.source, demo_pair.target, estimator=estimator)
     assert rotation_error_deg(result.rotation, demo_pair.true_transformation[:3, :3]) < bound_deg
+
+
+def test_the_candidate_set_is_the_configs(registrar, demo_pair):
+    """VerificationConfig.candidates decides which estimators are verified: with "core" added, its
+    pose is among the hypotheses; the model's default set leaves it out."""
+    default = registrar.register(demo_pair.source, demo_pair.target)
+    names = {name for hypothesis in default.verification.hypotheses for name in hypothesis.estimators}
+    assert names <= set(registrar.config.verification.candidates)
+    candidates = ("fsr", "ransac", "svd", "top_k", "core")
+    widened = registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"candidates": candidates}})
+    assert "core" in {name for hypothesis in widened.verification.hypotheses for name in hypothesis.estimators}
+    with pytest.raises(ValueError, match="candidates"):
+        registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"candidates": ["magic"]}})
 
 
 def test_match_then_pose_equals_register(registrar, demo_pair):
