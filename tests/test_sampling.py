@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from logdesc_rt.errors import LogdescError, NonFinitePointsError, PointCloudShapeError, TooFewPointsError
-from logdesc_rt.sampling import farthest_point_sampling, voxel_downsample
+from logdesc_rt.sampling import FPS_TIE_TOLERANCE, farthest_point_sampling, voxel_downsample
 
 
 def _brute_force_fps(points: np.ndarray, count: int, start: int) -> list[int]:
@@ -144,8 +144,11 @@ def _brute_force_voxel(points: np.ndarray, voxel: float) -> list[int]:
     chosen = []
     for members in groups.values():
         mean = (points[members] - points.min(axis=0)).mean(axis=0)
-        distances = [np.sum((points[m] - points.min(axis=0) - mean) ** 2) for m in members]
-        chosen.append(members[int(np.argmin(distances))])
+        distances = np.array([np.sum((points[m] - points.min(axis=0) - mean) ** 2) for m in members])
+        # Nearest the mean; distances equal up to round-off (two points: both equally far) tie,
+        # and the lowest index wins, so the choice cannot depend on the frame's round-off.
+        tied = distances <= distances.min() + FPS_TIE_TOLERANCE * voxel**2
+        chosen.append(members[int(np.argmax(tied))])
     return sorted(chosen)
 
 
