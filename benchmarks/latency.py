@@ -260,14 +260,15 @@ def _with_noise(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def network_inputs(registrar, source: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
     """The networks' inputs for one pair: ``registrar.prepare``, whose working size must be at
-    least N (so that nothing is subsampled and both backends see all N points).
+    least N (so that nothing is subsampled; both backends see the same points: the stray-point
+    test may set a few aside, at most 1 %).
 
     Returns:
         float32 arrays: src_edges / tgt_edges (N, k, 15); src_points / tgt_points
         (N, 3), network units; src_normals / tgt_normals (N, 3) unit normals.
     """
     prepared = registrar.prepare(source, target)
-    if len(prepared.source_index) < len(source) or len(prepared.target_index) < len(target):
+    if len(prepared.source_index) < 0.99 * len(source) or len(prepared.target_index) < 0.99 * len(target):
         raise ValueError(f"the registrar's working size {registrar.max_points} would subsample the pair")
     inputs = {}
     for prefix, points, geometry in (
@@ -328,7 +329,7 @@ def worker_onnxruntime(args) -> dict:
     start = time.perf_counter()  # the warm-up call, timed as the first call
     result = registrar.register(data["source"], data["target"], seed=POSE_SEED)
     first_call = time.perf_counter() - start
-    if result.subsampled:
+    if min(result.source_points_used, result.target_points_used) < 0.99 * args.size:  # strays may go
         raise RuntimeError(f"N={args.size}: subsampled although max_points = N")
 
     stages: dict[str, list[float]] = {}
