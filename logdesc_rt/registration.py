@@ -40,7 +40,6 @@ from .config import (
     CANDIDATE_ESTIMATORS,
     POSE_ESTIMATORS,
     REFINEMENT_METHODS,
-    SUBSAMPLING_METHODS,
     RefinementConfig,
     RuntimeConfig,
     SubsamplingConfig,
