@@ -43,9 +43,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from .config import NormalizationConfig
-from .normalization import PairNormalization
 from .sampling import working_subset
-from .synthetic import Pair, resampled_correspondences
+from .synthetic import Pair, pair_in_network_frame, resampled_correspondences
 
 SCAN_PROTOCOL = "scan"
 VIEW_ANGLE_DEG = (15.0, 90.0)  # angle between the two sensors' directions, seen from the centre
@@ -219,19 +218,9 @@ def make_scan_pair(
     pose[:3, :3] = target_turn @ source_turn.T
     pose[:3, 3] = target_shift
 
-    normalization = PairNormalization.fit(source, target, normalization_config)
-    return Pair(
-        protocol=SCAN_PROTOCOL,
-        source=source,
-        target=target,
-        T_gt=pose,
-        gt_match_src=gt_match_src,
-        gt_match_tgt=gt_match_tgt,
-        normalization=normalization,
-        source_network=normalization.source_to_network(source),
-        target_network=normalization.target_to_network(target),
-        T_gt_network=normalization.pose_to_network_frame(pose),
-        euler_zyx_deg=np.array([view_angle, 0.0, 0.0]),
+    return pair_in_network_frame(
+        SCAN_PROTOCOL, source, target, pose, gt_match_src, gt_match_tgt, normalization_config,
+        np.array([view_angle, 0.0, 0.0]),
     )
 
 

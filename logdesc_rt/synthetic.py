@@ -93,6 +93,35 @@ class Pair:
     euler_zyx_deg: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
+def pair_in_network_frame(
+    protocol: str,
+    source: np.ndarray,
+    target: np.ndarray,
+    pose: np.ndarray,
+    gt_match_src: np.ndarray,
+    gt_match_tgt: np.ndarray,
+    normalization_config: NormalizationConfig,
+    euler_zyx_deg: np.ndarray,
+) -> Pair:
+    """A :class:`Pair` from user-frame clouds, pose and labels: the runtime's normalisation is
+    fitted to the clouds, and the network-frame clouds and pose are derived from it (every
+    protocol, the simulated scans' too, builds its pair here)."""
+    normalization = PairNormalization.fit(source, target, normalization_config)
+    return Pair(
+        protocol=protocol,
+        source=source,
+        target=target,
+        T_gt=pose,
+        gt_match_src=gt_match_src,
+        gt_match_tgt=gt_match_tgt,
+        normalization=normalization,
+        source_network=normalization.source_to_network(source),
+        target_network=normalization.target_to_network(target),
+        T_gt_network=normalization.pose_to_network_frame(pose),
+        euler_zyx_deg=euler_zyx_deg,
+    )
+
+
 def partial_keep(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
     """Indices (ascending) of the ``count`` points nearest to a far point (PRNet's crop).
 
@@ -262,17 +291,7 @@ def make_pair(
         relative_turn[:3, 3] = centre - relative_turn[:3, :3] @ centre
         target = target @ relative_turn[:3, :3].T + relative_turn[:3, 3]
         pose = relative_turn @ pose
-    normalization = PairNormalization.fit(source, target, normalization_config)
-    return Pair(
-        protocol=protocol,
-        source=source,
-        target=target,
-        T_gt=pose,
-        gt_match_src=gt_match_src,
-        gt_match_tgt=gt_match_tgt,
-        normalization=normalization,
-        source_network=normalization.source_to_network(source),
-        target_network=normalization.target_to_network(target),
-        T_gt_network=normalization.pose_to_network_frame(pose),
-        euler_zyx_deg=np.degrees(angles_xyz[::-1]),
+    return pair_in_network_frame(
+        protocol, source, target, pose, gt_match_src, gt_match_tgt, normalization_config,
+        np.degrees(angles_xyz[::-1]),
     )
