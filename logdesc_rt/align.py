@@ -54,7 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from .batch import register_many
 from .config import RuntimeConfig
-from .io import open3d_points, read_point_cloud, write_point_cloud
+from .io import open3d_points, read_registration_input, write_point_cloud
 from .sampling import voxel_downsample
 from .validation import as_points
 
@@ -163,6 +163,25 @@ class AlignmentResult:
     records: list[dict] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
 
+    def view(self, path, scans, *, max_points: int = 60_000, seed: int = 0):
+        """Write an interactive 3D view of the aligned scans (each placed scan in its colour,
+        the pose graph's pairs between their centres) as one self-contained HTML file
+        (:mod:`logdesc_rt.tools.viewer`; needs plotly, the ``plot`` extra).
+
+        Args:
+            path: the .html file to write.
+            scans: the scans as given to :func:`align` (arrays or paths), in ``names``' order.
+            max_points: at most this many points on the page, shared by the scans.
+            seed: seeds the thinning.
+
+        Returns:
+            The path written.
+        """
+        from .tools.viewer import write_alignment_view
+
+        clouds, _ = _load_scans(scans, self.names)
+        return write_alignment_view(path, clouds, self, max_points=max_points, seed=seed)
+
     def to_json(self) -> dict:
         """``{"reference": name, "poses": {name: 4x4 lists}, "pairs": [used pairs with
         residuals], "disconnected": [names], "rejected": [...], "pruned": [...],
@@ -212,7 +231,8 @@ def align(
     """Bring N scans into one frame: the first scan's, unless it is cut off (stage 5).
 
     Args:
-        scans: N >= 2 point clouds: (Ni, 3) arrays, Open3D PointClouds or file paths, one
+        scans: N >= 2 point clouds: (Ni, 3) arrays, Open3D PointClouds or file paths (meshes
+            too: their surface samples, :func:`~logdesc_rt.io.read_registration_input`), one
             unit for all.
         names: one name per scan for the result (default: the paths, or ``scan_000`` ...).
         config: candidate pairs, verification, robust loss and pruning (:class:`AlignConfig`).
@@ -597,7 +617,7 @@ def _load_scans(scans: Sequence, names: Sequence[str] | None) -> tuple[list[np.n
     clouds, default_names = [], []
     for index, scan in enumerate(scans):
         if isinstance(scan, (str, os.PathLike)):
-            clouds.append(read_point_cloud(scan))
+            clouds.append(read_registration_input(scan)[0])
             default_names.append(os.fspath(scan))
         else:  # an array, or an Open3D PointCloud (its points)
             points = open3d_points(scan)

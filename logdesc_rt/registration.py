@@ -32,7 +32,8 @@ import numpy as np
 
 from .errors import RegistrationError
 from .geometry import PointGeometry, compute_geometry
-from .io import open3d_points, read_point_cloud
+from .io import Mesh, open3d_points, read_registration_input
+from .io.mesh import trimesh_mesh
 from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
@@ -129,6 +130,29 @@ class RegistrationResult:
     def translation(self) -> np.ndarray:
         """(3,) translation, user units."""
         return self.transformation[:3, 3].copy()
+
+    def view(self, path, source, target, *, true_transformation=None, max_points: int | None = None,
+             seed: int = 0) -> Path:
+        """Write an interactive 3D view of this registration: one self-contained HTML file that
+        opens offline in any browser (:mod:`logdesc_rt.tools.viewer`; needs plotly, the ``plot`` extra).
+
+        Args:
+            path: the .html file to write.
+            source, target: the clouds as registered (arrays, or the same paths / meshes as
+                given to ``register``: a mesh gives the same seeded surface samples again).
+            true_transformation: optional (4, 4) ground truth, for the title's errors.
+            max_points: per cloud, at most this many points on the page (default 20,000).
+            seed: seeds the thinning.
+
+        Returns:
+            The path written.
+        """
+        from .tools.viewer import DEFAULT_MAX_POINTS, write_registration_view
+
+        return write_registration_view(
+            path, _view_points(source), _view_points(target), self, true_transformation=true_transformation,
+            max_points=DEFAULT_MAX_POINTS if max_points is None else max_points, seed=seed,
+        )
 
     def to_dict(self) -> dict:
         """JSON-friendly summary (nested lists), as printed by ``logdesc-rt register --json``."""
@@ -385,7 +409,10 @@ class Registrar:
         Args:
             source, target: (N, 3) / (M, 3) arrays, Open3D PointClouds (legacy or tensor), or
                 point-cloud file paths (PLY, PCD, XYZ/TXT/CSV, NPY, OFF; LAS/LAZ, E57 with the
-                extras), any unit, any placement.
+                extras), any unit, any placement; or meshes (a mesh file: OBJ, STL, GLB / glTF,
+                a PLY / OFF with faces; a :class:`~logdesc_rt.io.Mesh` or ``trimesh.Trimesh``;
+                the ``mesh`` extra), registered as seeded points on their surface
+                (:mod:`logdesc_rt.io.mesh`; ``logdesc_rt.io.sample_surface`` picks the count).
             estimator: "auto" (default: every candidate estimator's pose is verified on the
                 full clouds and the best kept), or "fsr" (the paper's), "svd"
                 (confidence-weighted, all matches) or "ransac": that estimator's pose, still
@@ -752,10 +779,14 @@ class Registrar:
         return other
 
     def _load(self, cloud, name: str) -> np.ndarray:
-        if isinstance(cloud, (str, Path)):
-            cloud = read_point_cloud(cloud)
-        else:  # an Open3D PointCloud becomes its (N, 3) points; arrays pass as they are
+        if isinstance(cloud, (str, Path)):  # a point cloud's points, a mesh's surface samples
+            cloud, _ = read_registration_input(cloud, working_size=self.max_points)
+        elif isinstance(cloud, Mesh):
+            cloud = cloud.sample()
+        else:  # Open3D PointCloud / trimesh.Trimesh -> (N, 3) points; arrays pass as they are
             points = open3d_points(cloud)
+            if points is None and (mesh := trimesh_mesh(cloud)) is not None:
+                points = mesh.sample()
             cloud = cloud if points is None else points
         points = as_points(cloud, name=name, min_points=self.manifest.geometry.min_points)
         check_not_degenerate(points, name=name)
@@ -770,6 +801,18 @@ class Registrar:
             self.manifest.normalization,
             min_points=self.manifest.geometry.min_points,
         )
+
+
+def _view_points(cloud) -> np.ndarray:
+    """The points ``register`` would read from ``cloud`` (no checks beyond reading)."""
+    if isinstance(cloud, (str, Path)):
+        return read_registration_input(cloud, notify=lambda message: None)[0]
+    if isinstance(cloud, Mesh):
+        return cloud.sample()
+    points = open3d_points(cloud)
+    if points is None and (mesh := trimesh_mesh(cloud)) is not None:
+        points = mesh.sample()
+    return np.asarray(cloud if points is None else points, dtype=np.float64)
 
 
 def _seeded(config: RuntimeConfig, seed: int | None) -> RuntimeConfig:

@@ -48,6 +48,10 @@ Formats (read times for 1M points on a slow 2-core machine in brackets):
 Without the extra, reading or writing such a file raises PointCloudFileError naming the
 extra to install; :func:`check_format_available` says so before any work.
 
+Meshes (OBJ, STL, PLY / OFF with faces, GLB / glTF; the ``mesh`` extra, trimesh): :mod:`.mesh`
+reads them and samples their surface; :func:`read_registration_input` is what ``register``,
+``align`` and the CLI read a file with (a point cloud's points, or a mesh's surface samples).
+
 Scan sets: :func:`read_stanford_conf` reads the scans' poses from a Stanford 3D Scanning
 Repository ``.conf`` file (:mod:`.scan_set_poses`), e.g. to check ``logdesc_rt.align`` against them.
 """
@@ -65,6 +69,15 @@ from ..errors import LogdescError, PointCloudFileError  # noqa: F401 (PointCloud
 from ..validation import as_points
 from . import e57, las, npy, off, pcd, ply, text
 from ._common import PARSE_ERRORS, MissingLibraryError, check_readable_file, file_error
+from .mesh import (  # noqa: F401 (re-exported)
+    DEFAULT_SURFACE_SAMPLES,
+    MESH_ONLY_SUFFIXES,
+    MESH_WRITE_SUFFIXES,
+    Mesh,
+    read_mesh,
+    read_registration_input,
+    sample_surface,
+)
 from .scan_set_poses import read_stanford_conf  # noqa: F401 (re-exported)
 
 CORE_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".off")
@@ -73,6 +86,8 @@ OPTIONAL_SUFFIXES: dict[str, str] = {".las": "las", ".laz": "las", ".e57": "e57"
 """Suffixes that need an optional extra (suffix -> extra name: ``pip install "logdesc-rt[las]"``)."""
 SUPPORTED_SUFFIXES: tuple[str, ...] = CORE_SUFFIXES + tuple(OPTIONAL_SUFFIXES)
 """File suffixes (lower case) that :func:`read_point_cloud` and :func:`write_point_cloud` accept."""
+INPUT_SUFFIXES: tuple[str, ...] = SUPPORTED_SUFFIXES + MESH_ONLY_SUFFIXES
+"""File suffixes :func:`read_registration_input` reads: point clouds and meshes."""
 
 # --------------------------------------------------------------------------------------
 # Public API
@@ -266,11 +281,16 @@ def open3d_points(cloud) -> np.ndarray | None:
 def check_format_available(path: str | os.PathLike) -> None:
     """Raise :class:`PointCloudFileError` unless ``path``'s format can be read and written here.
 
-    Checks the suffix, and for LAS/LAZ/E57 that their optional library is installed (the
+    Checks the suffix, for meshes that trimesh is installed, and for LAS/LAZ/E57 that their optional library is installed (the
     message names the extra to install). Reads nothing: for checks before long work.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if suffix in MESH_ONLY_SUFFIXES:
+        from .mesh import _trimesh
+
+        _trimesh(path)  # raises, naming the extra, without trimesh
+        return
     if suffix not in SUPPORTED_SUFFIXES:
         raise _unsupported_suffix(path)
     try:

@@ -1,9 +1,11 @@
-"""OFF: the vertices of an (ST)(C)(N)OFF file; faces and per-vertex colours are ignored."""
+"""OFF: the vertices of an (ST)(C)(N)OFF file; per-vertex colours are ignored, faces counted
+(:func:`face_count`; :mod:`.mesh` reads them)."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -19,6 +21,25 @@ def read(path: Path) -> np.ndarray:
     line, on the same line, or fused to the keyword ("OFF490 518 0", as in ModelNet);
     a missing keyword; ``#`` comments and blank lines anywhere.
     """
+    counts, content = _header(path)
+    vertex_count = counts[0]
+    vertex_lines = []
+    for _ in range(vertex_count):  # stops at the file's end even if the count is huge
+        line = next(content, None)
+        if line is None:
+            raise file_error(path, f"OFF header announces {vertex_count} vertices, the file has {len(vertex_lines)}")
+        vertex_lines.append(line[1])
+    return load_columns(vertex_lines, (0, 1, 2), delimiter=None)
+
+
+def face_count(path: Path) -> int:
+    """The face count an OFF file's header announces (0 when it gives none)."""
+    counts, _ = _header(path)
+    return counts[1]
+
+
+def _header(path: Path) -> tuple[tuple[int, int], Iterator[tuple[int, str]]]:
+    """(vertex count, face count) and the content lines after the counts: (line number, text)."""
     text = read_text(path)
     # (line number, text without comment) of every line that holds something.
     lines = ((number, line.split("#", 1)[0].strip()) for number, line in enumerate(text.splitlines(), start=1))
@@ -44,15 +65,8 @@ def read(path: Path) -> np.ndarray:
         raise file_error(path, f"not an OFF file: line {first[0]} starts with {first[1][:20]!r}, not 'OFF'")
     if not DECIMAL_INTEGER.fullmatch(rest[0]):
         raise file_error(path, f"OFF vertex count {rest[0]!r} is not a non-negative integer")
-    vertex_count = int(rest[0])
-
-    vertex_lines = []
-    for _ in range(vertex_count):  # stops at the file's end even if the count is huge
-        line = next(content, None)
-        if line is None:
-            raise file_error(path, f"OFF header announces {vertex_count} vertices, the file has {len(vertex_lines)}")
-        vertex_lines.append(line[1])
-    return load_columns(vertex_lines, (0, 1, 2), delimiter=None)
+    faces = int(rest[1]) if len(rest) > 1 and DECIMAL_INTEGER.fullmatch(rest[1]) else 0
+    return (int(rest[0]), faces), content
 
 
 def write(path: Path, points: np.ndarray) -> None:

@@ -46,9 +46,16 @@ ESTIMATOR_HELP = (
     "farthest-sampling estimator; svd: confidence-weighted least squares on all matches; ransac: 3-point "
     "RANSAC; core: SVD on the largest mutually consistent set of matches. The chosen pose is always verified."
 )
+VIEW_HELP = ("write an interactive 3D page (one self-contained HTML file, opens offline in any browser): before / "
+             "after, residual colours, matches; needs plotly (pip install 'logdesc-rt[plot]')")
+SAMPLE_SURFACE_HELP = ("register meshes (OBJ, STL, GLB/glTF, and PLY/OFF with faces) as N points sampled on their "
+                       "surface, area-weighted and seeded (default: 5000 for mesh formats; a PLY/OFF's vertices unless "
+                       "they are too few or uneven); point clouds are used as they are")
 EPILOG = """\
 formats: PLY, PCD, XYZ/TXT/CSV (x y z in the first columns), NPY ((N, 3+) array), OFF; by suffix.
 LAS/LAZ and E57 with the optional extras: pip install "logdesc-rt[las]" / "logdesc-rt[e57]".
+meshes: OBJ, STL, GLB/glTF, PLY/OFF with faces (pip install "logdesc-rt[mesh]"), sampled on
+their surface; --write-aligned OUT.ply/.obj/.stl/.off/.glb writes the moved mesh with its faces.
 
 working size: clouds larger than the model's training size (1024 points) are subsampled to it
 (farthest-point sampling) for the networks; verification, ICP, fitness and --write-aligned use
@@ -77,6 +84,10 @@ class _Progress:
         if not self.quiet:
             print(f"[{time.perf_counter() - self.start:6.1f} s] {message}", file=sys.stderr, flush=True)
 
+    def warn(self, message: str) -> None:
+        """A line the user must see even with --quiet (e.g. a mesh sampled without being asked)."""
+        print(f"logdesc-rt: note: {message}", file=sys.stderr, flush=True)
+
 
 def _version() -> str:
     from .. import __version__
@@ -86,10 +97,10 @@ def _version() -> str:
 
 # ----------------------------------------------------------------------------- checks before work
 def _check_input(path: Path, what: str) -> None:
-    from ..io import SUPPORTED_SUFFIXES
+    from ..io import INPUT_SUFFIXES
 
-    if path.suffix.lower() not in SUPPORTED_SUFFIXES:
-        raise ValueError(f"{what} {path}: unsupported suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    if path.suffix.lower() not in INPUT_SUFFIXES:
+        raise ValueError(f"{what} {path}: unsupported suffix {path.suffix!r}; supported: {', '.join(INPUT_SUFFIXES)}")
     if not path.is_file():
         raise ValueError(f"{what} {path}: no such file")
     if not os.access(path, os.R_OK):
@@ -128,6 +139,32 @@ def _check_plot(path: Path | None) -> None:
     except ImportError as error:
         raise ValueError("--plot needs matplotlib, which is not installed: pip install matplotlib "
                          "(or pip install 'logdesc-rt[plot]')") from error
+
+
+def _check_view(path: Path | None) -> None:
+    if path is None:
+        return
+    from .viewer import VIEW_SUFFIXES, check_view_available
+
+    _check_output(path, "--view", VIEW_SUFFIXES)
+    check_view_available(path)
+
+
+def _read_input(path: Path, sample_surface: int | None, working_size: int | None, progress) -> tuple:
+    """(points, mesh or None) of an input file: ``--sample-surface`` applies to meshes only
+    (mesh formats, PLY / OFF with faces); point clouds are used as they are."""
+    from ..io import read_registration_input
+    from ..io.mesh import is_mesh_file
+
+    is_mesh = is_mesh_file(path)
+    points, mesh = read_registration_input(
+        path, sample_surface=sample_surface if is_mesh else None, working_size=working_size or 1024,
+        notify=progress.warn,
+    )
+    sampled = mesh is not None and (sample_surface is not None or len(points) != len(mesh.vertices))
+    if sampled:
+        progress(f"{path}: a mesh of {len(mesh.faces)} triangles; {len(points)} points sampled on its surface")
+    return points, mesh
 
 
 def _read_init(path: Path) -> np.ndarray:
@@ -212,30 +249,37 @@ def _summary_line(result) -> str:
 
 
 def _command_register(args) -> int:
-    from ..io import read_point_attributes, read_point_cloud, transform_attributes, writable_attributes, write_point_cloud
+    from ..io import read_point_attributes, transform_attributes, writable_attributes, write_point_cloud
 
     progress = _Progress(args.quiet)
     # 1. Everything that can fail without registering.
     _check_input(args.source, "source")
     _check_input(args.target, "target")
     if args.write_aligned is not None:
-        from ..io import SUPPORTED_SUFFIXES
+        from ..io import MESH_WRITE_SUFFIXES, SUPPORTED_SUFFIXES
+        from ..io.mesh import is_mesh_file
 
-        _check_output(args.write_aligned, "--write-aligned", SUPPORTED_SUFFIXES)
-        _check_format_library(args.write_aligned, "--write-aligned")
+        # A mesh source is written as the moved mesh (faces and all) in a mesh format.
+        writable = SUPPORTED_SUFFIXES + MESH_WRITE_SUFFIXES if is_mesh_file(args.source) else SUPPORTED_SUFFIXES
+        _check_output(args.write_aligned, "--write-aligned", tuple(dict.fromkeys(writable)))
+        if args.write_aligned.suffix.lower() in SUPPORTED_SUFFIXES:
+            _check_format_library(args.write_aligned, "--write-aligned")
     _check_plot(args.plot)
+    _check_view(args.view)
     config = _runtime_config(args)
     init = _read_init(args.init) if args.init is not None else None
 
     # 2. The work.
     progress(f"reading {args.source} and {args.target}")
-    source = read_point_cloud(args.source)
-    target = read_point_cloud(args.target)
-    attributes = read_point_attributes(args.source) if args.write_aligned is not None else {}
+    source, source_mesh = _read_input(args.source, args.sample_surface, args.max_points, progress)
+    target, _ = _read_input(args.target, args.sample_surface, args.max_points, progress)
+    attributes = read_point_attributes(args.source) if args.write_aligned is not None and source_mesh is None else {}
     progress(f"source {len(source)} points, target {len(target)} points; loading the model")
     registrar = _registrar(args, config)
     result = registrar.register(source, target, init=init, progress=progress, **_register_options(args))
-    if args.write_aligned is not None:
+    if args.write_aligned is not None and source_mesh is not None:
+        _write_aligned_mesh(args.write_aligned, source_mesh, source, result, progress)
+    elif args.write_aligned is not None:
         progress(f"writing the aligned source to {args.write_aligned}")
         moved_attributes = transform_attributes(attributes, result.rotation)
         kept = writable_attributes(args.write_aligned, moved_attributes)
@@ -249,6 +293,9 @@ def _command_register(args) -> int:
 
         progress(f"drawing {args.plot}")
         plot_registration(source, target, result.transformation, args.plot, result=result)
+    if args.view is not None:
+        progress(f"writing the 3D view {args.view}")
+        result.view(args.view, source, target)
 
     # 3. Results on stdout, verdict on stderr and in the exit code.
     if args.json:
@@ -268,11 +315,25 @@ def _command_register(args) -> int:
     return EXIT_OK
 
 
+def _write_aligned_mesh(path: Path, mesh, samples: np.ndarray, result, progress) -> None:
+    """The source mesh moved by the pose: the mesh with its faces in a mesh format, else the
+    surface samples that were registered (a point-cloud format has no faces)."""
+    from ..io import MESH_WRITE_SUFFIXES, write_point_cloud
+
+    if path.suffix.lower() in MESH_WRITE_SUFFIXES:
+        progress(f"writing the aligned mesh ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles) to {path}")
+        mesh.transformed(result.transformation).write(path)
+    else:
+        progress(f"{path.suffix} holds points only: writing the {len(samples)} aligned surface samples to {path}")
+        write_point_cloud(path, samples @ result.rotation.T + result.translation)
+
+
 def _command_demo(args) -> int:
     from ..demo import make_demo_pair
 
     progress = _Progress(args.quiet)
     _check_plot(args.plot)
+    _check_view(args.view)
     config = _runtime_config(args)
     pair = make_demo_pair()
     registrar = _registrar(args, config)
@@ -299,18 +360,19 @@ def _command_demo(args) -> int:
         plot_registration(pair.source, pair.target, result.transformation, args.plot, result=result,
                           true_transformation=truth)
         print(f"picture written to {args.plot}")
+    if args.view:
+        result.view(args.view, pair.source, pair.target, true_transformation=truth)
+        print(f"3D view written to {args.view} (open it in a browser)")
     if not result.success and not args.allow_failure:
         return EXIT_NOT_SUCCESS
     return EXIT_OK
 
 
 def _command_describe(args) -> int:
-    from ..io import read_point_cloud
-
     _check_input(args.cloud, "cloud")
     out = args.out or Path(args.cloud).with_suffix(".descriptors.npz")
     _check_output(Path(out), "--out", (".npz",))
-    points = read_point_cloud(args.cloud)
+    points, _ = _read_input(args.cloud, None, args.max_points, _Progress(quiet=True))
     described = _registrar(args).describe(points)
     np.savez(out, indices=described.indices, descriptors=described.descriptors, normals=described.normals,
              points=points[described.indices])
@@ -484,6 +546,7 @@ def _command_align(args) -> int:
     if args.pairs is not None:
         _check_output(args.pairs, "--pairs", PAIRS_OUTPUT_SUFFIXES)
     _check_plot(args.plot)
+    _check_view(args.view)
     _check_backend(args)
     runtime_config = _runtime_config(args)
     refine = AlignConfig.refine if args.refine is None else (None if args.refine == "none" else args.refine)
@@ -496,9 +559,11 @@ def _command_align(args) -> int:
     config = AlignConfig(refine=refine, seed=0 if args.seed is None else args.seed, reference=reference)
 
     # 2. The work.
+    progress(f"reading {len(names)} scans")
+    scans = [_read_input(scan, args.sample_surface, None, progress)[0] for scan in args.scans]
     progress(f"aligning {len(names)} scans")
     result = align(
-        args.scans,
+        scans,
         names=names,
         config=config,
         runtime_config=runtime_config,
@@ -514,7 +579,7 @@ def _command_align(args) -> int:
              f"poses in the frame of {result.reference}; writing {args.out}")
     args.out.write_text(json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
     if args.merged is not None or args.plot is not None:
-        points, scan = merge_scans(args.scans, result, args.voxel)
+        points, scan = merge_scans(scans, result, args.voxel)
         if args.merged is not None:
             from ..io import write_point_cloud
 
@@ -525,6 +590,9 @@ def _command_align(args) -> int:
 
             progress(f"drawing {args.plot}")
             plot_alignment(points, scan, names, args.plot, disconnected=result.disconnected)
+    if args.view is not None:
+        progress(f"writing the 3D view {args.view}")
+        result.view(args.view, scans)
 
     # 3. One line per scan on stdout, the verdict in the exit code.
     for name in names:
@@ -627,6 +695,10 @@ def build_parser() -> argparse.ArgumentParser:
                                "and other vertex properties are kept where the output format has room")
     register.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
                           help="write a picture (before / after with residuals, correspondences); needs matplotlib")
+    register.add_argument("--view", type=Path, default=None, metavar="OUT.html",
+                          help=VIEW_HELP)
+    register.add_argument("--sample-surface", type=_count(3), default=None, metavar="N",
+                          help=SAMPLE_SURFACE_HELP)
     register.add_argument("--init", type=Path, default=None, metavar="FILE",
                           help="initial guess source -> target: a 4x4 matrix as text, .npy, or .json (a 4x4 list "
                                "or --json's output); verified with the other candidates")
@@ -638,6 +710,7 @@ def build_parser() -> argparse.ArgumentParser:
                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     demo.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
                       help="write a picture (before / after, correspondences); needs matplotlib")
+    demo.add_argument("--view", type=Path, default=None, metavar="OUT.html", help=VIEW_HELP)
     _add_registration_options(demo)
     _add_runtime_options(demo)
     demo.set_defaults(handler=_command_demo)
@@ -691,6 +764,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="voxel size of the merged cloud, in the scans' unit (default: 1/500 of its diagonal)")
     align.add_argument("--plot", type=Path, default=None, metavar="OVERVIEW.png",
                        help="write a picture of the merged cloud coloured by scan; needs matplotlib")
+    align.add_argument("--view", type=Path, default=None, metavar="OUT.html",
+                       help="write an interactive 3D page (each scan in its colour, the pairs used); needs plotly")
+    align.add_argument("--sample-surface", type=_count(3), default=None, metavar="N", help=SAMPLE_SURFACE_HELP)
     align.add_argument("--pairs", type=Path, default=None, metavar="PAIRS.jsonl",
                        help="keep the pairwise records here (JSON lines); a rerun resumes from them")
     _add_parallel_options(align)

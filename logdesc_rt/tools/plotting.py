@@ -34,6 +34,36 @@ def _pyplot():
     return plt
 
 
+def registration_title(result, transformation: np.ndarray, true_transformation: np.ndarray | None = None,
+                       separator: str = "; ") -> str:
+    """A picture's or a page's title, its parts joined by ``separator``: verdict, confidence, fitness, inlier RMSE,
+    estimator and reason (from ``result``, if given), rotation and translation errors (if the
+    truth is given). Empty when there is neither."""
+    parts = []
+    if result is not None:
+        verdict = "SUCCESS" if result.success else "NOT A SUCCESS"
+        rmse = "n/a" if not np.isfinite(result.inlier_rmse) else f"{result.inlier_rmse:.3g}"
+        parts.append(f"{verdict} (confidence {result.confidence:.2f}), fitness {result.fitness:.2f}, "
+                     f"inlier RMSE {rmse}, pose from {result.pose_estimator}")
+        if result.reason:
+            parts.append(result.reason)
+    if true_transformation is not None:
+        from ..metrics import rotation_error_deg
+
+        error = float(rotation_error_deg(transformation[:3, :3], true_transformation[:3, :3]))
+        offset = float(np.linalg.norm(transformation[:3, 3] - true_transformation[:3, 3]))
+        parts.append(f"rotation error {error:.2f} deg, translation error {offset:.3g}")
+    return separator.join(parts)
+
+
+def matches_agreeing(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, pairs: np.ndarray,
+                     limit: float) -> np.ndarray:
+    """(K,) bool: whether each match [source_index, target_index] agrees with the pose, i.e. the
+    moved source point lies within 2 x ``limit`` (the correspondence distance) of its target point."""
+    moved = source[pairs[:, 0]] @ transformation[:3, :3].T + transformation[:3, 3]
+    return np.linalg.norm(moved - target[pairs[:, 1]], axis=1) < 2 * limit
+
+
 def _subset(count: int, limit: int, generator: np.random.Generator) -> np.ndarray:
     if count <= limit:
         return np.arange(count)
@@ -98,17 +128,9 @@ def plot_registration(
         _correspondence_panel(figure.add_subplot(1, panels, 3, projection="3d"), source, target, transformation,
                               result, limit, generator, source_shown, target_shown)
 
-    title = []
-    if result is not None:
-        verdict = "SUCCESS" if result.success else "NOT A SUCCESS"
-        rmse = "n/a" if not np.isfinite(result.inlier_rmse) else f"{result.inlier_rmse:.3g}"
-        title.append(f"{verdict} (confidence {result.confidence:.2f}), fitness {result.fitness:.2f}, inlier RMSE {rmse}")
-    if true_transformation is not None:
-        cosine = (np.trace(true_transformation[:3, :3].T @ rotation) - 1.0) / 2.0
-        error = float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
-        title.append(f"rotation error {error:.2f} deg")
+    title = registration_title(result, transformation, true_transformation)
     if title:
-        figure.suptitle("; ".join(title), color="darkgreen" if result is None or result.success else "darkred")
+        figure.suptitle(title, color="darkgreen" if result is None or result.success else "darkred")
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)
@@ -123,8 +145,7 @@ def _correspondence_panel(axes, source, target, transformation, result, limit, g
     target_placed = target - target.mean(axis=0) + shift
     axes.scatter(*source_centred[source_shown].T, s=1, c="tab:orange", alpha=0.3)
     axes.scatter(*target_placed[target_shown].T, s=1, c="tab:blue", alpha=0.3)
-    moved = source[pairs[:, 0]] @ transformation[:3, :3].T + transformation[:3, 3]
-    agrees = np.linalg.norm(moved - target[pairs[:, 1]], axis=1) < 2 * limit
+    agrees = matches_agreeing(source, target, transformation, pairs, limit)
     drawn = _subset(len(pairs), MAX_LINES, generator)
     for index in drawn:
         start, end = source_centred[pairs[index, 0]], target_placed[pairs[index, 1]]
