@@ -11,9 +11,9 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
-import logdesc_rt  # noqa: E402
-from logdesc_rt.errors import PointCloudFileError  # noqa: E402
-from logdesc_rt.io import (  # noqa: E402
+import logdesc_rt
+from logdesc_rt.errors import PointCloudFileError
+from logdesc_rt.io import (
     DEFAULT_SURFACE_SAMPLES,
     Mesh,
     read_mesh,
@@ -21,16 +21,16 @@ from logdesc_rt.io import (  # noqa: E402
     read_registration_input,
     sample_surface,
 )
-from logdesc_rt.io.mesh import vertex_sampling_problem  # noqa: E402
-from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
-from logdesc_rt.tools.cli import main  # noqa: E402
+from logdesc_rt.io.mesh import vertex_sampling_problem
+from logdesc_rt.metrics import rotation_error_deg
+from logdesc_rt.tools.cli import main
 
-from .shapes import random_rigid_transform  # noqa: E402
+from .shapes import random_rigid_transform
 
 MESH_FORMATS = (".obj", ".stl", ".ply", ".off", ".glb")
 
 
-def _box_mesh() -> "trimesh.Trimesh":
+def _box_mesh() -> trimesh.Trimesh:
     return trimesh.creation.box(extents=(1.0, 2.0, 3.0))
 
 

@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("plotly")
 
-import logdesc_rt  # noqa: E402
-from logdesc_rt.demo import make_demo_pair  # noqa: E402
-from logdesc_rt.tools.cli import main  # noqa: E402
-from logdesc_rt.tools.screenshot import browser_available, render_page  # noqa: E402
+import logdesc_rt
+from logdesc_rt.demo import make_demo_pair
+from logdesc_rt.tools.cli import main
+from logdesc_rt.tools.screenshot import browser_available, render_page
 
 # Set by .ci/run, which installs Chromium: the browser test must run there, not skip.
 REQUIRE_BROWSER = "LOGDESC_REQUIRE_BROWSER"

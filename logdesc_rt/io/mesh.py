@@ -23,14 +23,14 @@ Which files are meshes (:func:`read_registration_input`):
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from ..validation import as_points
 from ..errors import PointCloudFileError
+from ..validation import as_points
 from ._common import check_readable_file, file_error
 
 MESH_ONLY_SUFFIXES: tuple[str, ...] = (".obj", ".stl", ".glb", ".gltf")
@@ -88,7 +88,7 @@ class Mesh:
         points, _ = trimesh.sample.sample_surface(self._trimesh(trimesh), int(count), seed=int(seed))
         return np.ascontiguousarray(points, dtype=np.float64)
 
-    def transformed(self, transformation: np.ndarray) -> "Mesh":
+    def transformed(self, transformation: np.ndarray) -> Mesh:
         """The mesh moved by a (4, 4) rigid transformation (faces unchanged)."""
         transformation = np.asarray(transformation, dtype=np.float64)
         moved = self.vertices @ transformation[:3, :3].T + transformation[:3, 3]
@@ -127,7 +127,7 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         _check_binary_stl_size(path)
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as error:  # noqa: BLE001 - trimesh's parsers raise many types; all mean "corrupt"
+    except Exception as error:
         raise file_error(path, f"cannot parse as {path.suffix.lower()[1:].upper()} mesh: {error}") from error
     faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64).reshape(-1, 3)
     if len(faces) == 0:

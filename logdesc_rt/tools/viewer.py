@@ -24,8 +24,8 @@ Drawing uses plotly (MIT; WebGL scatter plots), an optional extra: ``pip install
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from pykdtree.kdtree import KDTree
@@ -223,7 +223,7 @@ def _layout(figure, title: str, colour: str, views: dict[str, list[bool]] | None
         title={"text": title, "font": {"color": colour, "size": 15}, "x": 0.01},
         scene={"aspectmode": "data", "xaxis": {"title": "x"}, "yaxis": {"title": "y"}, "zaxis": {"title": "z"}},
         legend={"itemsizing": "constant", "x": 0.0, "y": 0.9},
-        margin={"l": 0, "r": 0, "t": 70, "b": 0},
+        margin={"l": 0, "r": 0, "t": 100, "b": 0},
         template="plotly_white",
     )
     if views:
