@@ -232,3 +232,14 @@ def test_cli_refuses_a_mesh_output_for_a_point_cloud_source(tmp_path, sphere):
     logdesc_rt.write_point_cloud(source, sphere)
     logdesc_rt.write_point_cloud(target, sphere)
     assert main(["register", str(source), str(target), "--write-aligned", str(tmp_path / "out.stl")]) == 2
+
+
+def test_register_many_and_align_take_mesh_paths(shared_data, tmp_path):
+    path, scan, pose = _bunny_mesh_and_scan(shared_data)
+    scan_path = tmp_path / "scan.npy"
+    np.save(scan_path, scan)
+    records = logdesc_rt.register_many([(path, scan_path)], workers=0, refine="point_to_plane")
+    assert records[0]["ok"] and records[0]["success"]
+    assert rotation_error_deg(np.asarray(records[0]["transformation"])[:3, :3], pose[:3, :3]) < 2.0
+    alignment = logdesc_rt.align([path, scan_path], workers=0, progress=False)
+    assert not alignment.disconnected
