@@ -243,3 +243,17 @@ def test_register_many_and_align_take_mesh_paths(shared_data, tmp_path):
     assert rotation_error_deg(np.asarray(records[0]["transformation"])[:3, :3], pose[:3, :3]) < 2.0
     alignment = logdesc_rt.align([path, scan_path], workers=0, progress=False)
     assert not alignment.disconnected
+
+
+def test_without_trimesh_a_mesh_file_names_the_extra_and_a_ply_gives_its_vertices(tmp_path, monkeypatch):
+    stl, ply = tmp_path / "box.stl", tmp_path / "box.ply"
+    _box_mesh().export(stl)
+    _box_mesh().export(ply)
+    monkeypatch.setitem(__import__("sys").modules, "trimesh", None)  # "import trimesh" now fails
+    with pytest.raises(PointCloudFileError, match=r"box\.stl: .*logdesc-rt\[mesh\]"):
+        read_registration_input(stl)
+    notes: list[str] = []
+    points, mesh = read_registration_input(ply, notify=notes.append)
+    assert mesh is None and len(points) == 8  # the vertices, as before meshes were read
+    assert len(notes) == 1 and "logdesc-rt[mesh]" in notes[0]
+    assert main(["register", str(stl), str(ply)]) == 2  # stopped before any work, naming the extra
