@@ -141,10 +141,19 @@ class MatchingConfig(_DictMixin):
     Attributes:
         sinkhorn_iterations: 50 in the official code.
         match_threshold: a mutual best match is kept if its assignment probability exceeds this.
+        dustbin_in_mutual_test: True (the paper's reading): a point whose largest entry is its
+            dustbin is unmatched. False: each point's best real partner, kept when mutual, however
+            much mass the dustbin holds (the dustbin still shapes the plan); on scan pairs, where
+            a trained matcher sends most points to the dustbin, this keeps about ten times the
+            matches at a similar inlier share, for the robust estimators to sort
+            (``training/results/v4_cycle2/README.md``). The success flag is calibrated for the
+            model's own setting: a model switched by hand keeps a calibration fitted on other
+            match counts.
     """
 
     sinkhorn_iterations: int = 50
     match_threshold: float = 0.0
+    dustbin_in_mutual_test: bool = True
 
     def __post_init__(self) -> None:
         if self.sinkhorn_iterations < 1:

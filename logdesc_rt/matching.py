@@ -116,7 +116,7 @@ def log_domain_sinkhorn(
 
 
 def sinkhorn_matches(
-    scores, dustbin_score: float, iterations: int = 50, threshold: float = 0.0
+    scores, dustbin_score: float, iterations: int = 50, threshold: float = 0.0, dustbin_in_mutual_test: bool = True
 ) -> "Matches":
     """Mutual best matches of the Sinkhorn assignment, read without any log-assignment matrix.
 
@@ -138,6 +138,7 @@ def sinkhorn_matches(
         dustbin_score: the learned dustbin score alpha.
         iterations: Sinkhorn iterations (row then column update each), as in training.
         threshold: keep matches whose probability exceeds this.
+        dustbin_in_mutual_test: see :class:`~logdesc_rt.config.MatchingConfig`.
 
     Returns:
         :class:`Matches`, as :func:`mutual_matches` of :func:`log_optimal_transport` gives
@@ -159,12 +160,15 @@ def sinkhorn_matches(
         row_scaling = row_marginal / (kernel @ column_scaling)
         column_scaling = column_marginal / (row_scaling @ kernel)
     if not (_is_safe(row_scaling) and _is_safe(column_scaling)):
-        return mutual_matches(log_optimal_transport(scores, dustbin_score, iterations), threshold)
+        return mutual_matches(log_optimal_transport(scores, dustbin_score, iterations), threshold,
+                              dustbin_in_mutual_test)
 
+    # Without the dustbin in the test, the argmaxes run over the real rows / columns only.
+    kept_rows, kept_columns = (rows + 1, columns + 1) if dustbin_in_mutual_test else (rows, columns)
     kernel *= column_scaling[None, :]  # E_ij b_j: row-wise proportional to the plan
-    best_column = kernel[:rows].argmax(axis=1)
+    best_column = kernel[:rows, :kept_columns].argmax(axis=1)
     kernel *= row_scaling[:, None]  # a_i E_ij b_j = P_ij, the plan itself
-    best_row = kernel[:, :columns].argmax(axis=0)
+    best_row = kernel[:kept_rows, :columns].argmax(axis=0)
     source_index = np.flatnonzero(best_column < columns)
     target_index = best_column[source_index]
     mutual = best_row[target_index] == source_index
@@ -202,20 +206,23 @@ class Matches:
         return len(self.source_index)
 
 
-def mutual_matches(log_assignment: np.ndarray, threshold: float = 0.0) -> Matches:
-    """Source point i matches target point j when each is the other's best, dustbin included.
+def mutual_matches(log_assignment: np.ndarray, threshold: float = 0.0, dustbin_in_mutual_test: bool = True) -> Matches:
+    """Source point i matches target point j when each is the other's best, dustbin included
+    (or, with ``dustbin_in_mutual_test=False``, among the real points only).
 
     Args:
         log_assignment: (N+1, M+1) from :func:`log_optimal_transport`.
         threshold: keep matches whose probability exp(log_assignment[i, j]) exceeds this.
+        dustbin_in_mutual_test: see :class:`~logdesc_rt.config.MatchingConfig`.
 
     Returns:
-        :class:`Matches`, sorted by source index. A point whose best entry is the dustbin is
-        unmatched.
+        :class:`Matches`, sorted by source index. With the dustbin in the test, a point whose
+        best entry is the dustbin is unmatched.
     """
     rows, columns = log_assignment.shape[0] - 1, log_assignment.shape[1] - 1
-    best_column = log_assignment[:rows].argmax(axis=1)  # (N,), == columns: dustbin
-    best_row = log_assignment[:, :columns].argmax(axis=0)  # (M,), == rows: dustbin
+    kept_rows, kept_columns = (rows + 1, columns + 1) if dustbin_in_mutual_test else (rows, columns)
+    best_column = log_assignment[:rows, :kept_columns].argmax(axis=1)  # (N,), == columns: dustbin
+    best_row = log_assignment[:kept_rows, :columns].argmax(axis=0)  # (M,), == rows: dustbin
     source_index = np.flatnonzero(best_column < columns)
     target_index = best_column[source_index]
     mutual = best_row[target_index] == source_index

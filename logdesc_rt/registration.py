@@ -677,6 +677,7 @@ class Registrar:
                 self.manifest.dustbin_score,
                 self.config.matching.sinkhorn_iterations,
                 self.config.matching.match_threshold,
+                self.config.matching.dustbin_in_mutual_test,
             )
         return PairMatches(
             prepared=prepared,

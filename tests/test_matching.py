@@ -139,3 +139,25 @@ def test_float32_sinkhorn_threshold_and_empty_overlap():
     assert (confident.confidence > 0.9).all()
     # Nothing resembles anything: every point goes to the dustbin, no match, no error.
     assert len(sinkhorn_matches(np.full((50, 40), -30.0, dtype=np.float32), 1.0, 50)) == 0
+
+
+def test_without_the_dustbin_in_the_mutual_test_every_mutual_real_best_is_kept():
+    from logdesc_rt.matching import sinkhorn_matches
+
+    rng = np.random.default_rng(7)
+    # A strong dustbin: with it in the test, most points stay unmatched.
+    scores = rng.normal(scale=1.0, size=(80, 70))
+    scores[np.arange(30), np.arange(30)] += 6.0  # 30 clear pairs
+    with_dustbin = sinkhorn_matches(scores, 4.0, 50)
+    without = sinkhorn_matches(scores, 4.0, 50, dustbin_in_mutual_test=False)
+    # The float32 reader and the float64 reference agree in both modes.
+    reference = mutual_matches(log_optimal_transport(scores, 4.0, 50), dustbin_in_mutual_test=False)
+    assert np.array_equal(without.source_index, reference.source_index)
+    assert np.array_equal(without.target_index, reference.target_index)
+    # Every match of the paper's test is kept, and more beside them: each real mutual best.
+    assert set(zip(with_dustbin.source_index, with_dustbin.target_index)) <= set(
+        zip(without.source_index, without.target_index))
+    assert len(without) > len(with_dustbin)
+    plan = log_optimal_transport(scores, 4.0, 50)[:-1, :-1]
+    for i, j in zip(without.source_index, without.target_index):
+        assert plan[i].argmax() == j and plan[:, j].argmax() == i
