@@ -109,8 +109,8 @@ def test_logdesc_estimators_share_one_set_of_matches(shared_data):
         assert np.array_equal(result.pred_match, fsr_matches)
         assert not result.failed
     record = common.pair_record(pair, "logdesc_fsr", results["logdesc_fsr"])
-    # Shape 0 of the test split, noisy: the bundled model (small-h100-v2) measured 0.65 deg
-    # here, 0.41 after ICP. A plumbing check, not an accuracy claim (see benchmarks/results).
+    # Shape 0 of the test split, noisy: a plumbing check with a wide bound, not an accuracy
+    # claim (see benchmarks/results).
     assert record["rotation_error_deg"] < 10.0
     assert 0.0 < record["precision"] <= 1.0
     # ICP starts from FSR's pose: the refined pose differs, but stays close.

@@ -281,7 +281,7 @@ def test_the_bundled_graphs_hold_no_point_by_point_tensor_but_the_scores():
 
 @pytest.fixture(scope="module")
 def bundled_registrar() -> Registrar:
-    """The model that ships: it must be of the invariant architecture (issue 12 shipped v3)."""
+    """The model that ships: it must be of the invariant architecture."""
     registrar = Registrar()
     assert registrar.manifest.model_config.get("architecture") == "invariant", "the bundled model is not invariant"
     return registrar

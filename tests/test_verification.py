@@ -108,7 +108,7 @@ def test_a_pose_on_far_apart_real_scans_is_flagged_truthfully(registrar, bunny_0
 @pytest.mark.parametrize(("source_name", "target_name"), [("bun000", "bun315"), ("bun315", "chin")])
 def test_a_right_pose_on_real_scans_is_a_success(registrar, source_name, target_name):
     """Two real scan pairs (45 and 56 degrees apart, 70 and 57 % overlap) with ICP: the verified
-    pose refines to the truth and is flagged a success (small-h100-v2 and v3 both do)."""
+    pose refines to the truth and is flagged a success."""
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data not found at {SHARED_DATA}")
     source, target, truth = bunny_pair(SHARED_DATA, source_name, target_name)
