@@ -54,7 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from .batch import register_many
 from .config import RuntimeConfig
-from .io import open3d_points, read_registration_input, write_point_cloud
+from .io import input_points, write_point_cloud
 from .sampling import voxel_downsample
 from .validation import as_points
 
@@ -616,13 +616,10 @@ def _load_scans(scans: Sequence, names: Sequence[str] | None) -> tuple[list[np.n
         raise ValueError(f"align: needs at least 2 scans, got {len(scans)}")
     clouds, default_names = [], []
     for index, scan in enumerate(scans):
-        if isinstance(scan, (str, os.PathLike)):
-            clouds.append(read_registration_input(scan)[0])
-            default_names.append(os.fspath(scan))
-        else:  # an array, or an Open3D PointCloud (its points)
-            points = open3d_points(scan)
-            clouds.append(as_points(scan if points is None else points, name=f"scans[{index}]"))
-            default_names.append(f"scan_{index:03d}")
+        # Files, meshes and Open3D clouds become (N, 3) points; arrays pass as they are.
+        clouds.append(as_points(input_points(scan), name=os.fspath(scan) if isinstance(scan, (str, os.PathLike))
+                                else f"scans[{index}]"))
+        default_names.append(os.fspath(scan) if isinstance(scan, (str, os.PathLike)) else f"scan_{index:03d}")
     names = default_names if names is None else [str(name) for name in names]
     if len(names) != len(clouds):
         raise ValueError(f"names: {len(names)} names for {len(clouds)} scans")

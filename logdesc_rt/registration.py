@@ -32,8 +32,7 @@ import numpy as np
 
 from .errors import RegistrationError
 from .geometry import PointGeometry, compute_geometry
-from .io import Mesh, open3d_points, read_registration_input
-from .io.mesh import trimesh_mesh
+from .io import input_points
 from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
@@ -149,8 +148,11 @@ class RegistrationResult:
         """
         from .tools.viewer import DEFAULT_MAX_POINTS, write_registration_view
 
+        working_size = (self.config.subsampling.max_points if self.config is not None else 0) or 1024
+        source, target = (np.asarray(input_points(cloud, working_size=working_size, notify=lambda message: None),
+                                     dtype=np.float64) for cloud in (source, target))
         return write_registration_view(
-            path, _view_points(source), _view_points(target), self, true_transformation=true_transformation,
+            path, source, target, self, true_transformation=true_transformation,
             max_points=DEFAULT_MAX_POINTS if max_points is None else max_points, seed=seed,
         )
 
@@ -780,15 +782,8 @@ class Registrar:
         return other
 
     def _load(self, cloud, name: str) -> np.ndarray:
-        if isinstance(cloud, (str, Path)):  # a point cloud's points, a mesh's surface samples
-            cloud, _ = read_registration_input(cloud, working_size=self.max_points)
-        elif isinstance(cloud, Mesh):
-            cloud = cloud.sample()
-        else:  # Open3D PointCloud / trimesh.Trimesh -> (N, 3) points; arrays pass as they are
-            points = open3d_points(cloud)
-            if points is None and (mesh := trimesh_mesh(cloud)) is not None:
-                points = mesh.sample()
-            cloud = cloud if points is None else points
+        # Files, meshes and Open3D clouds become (N, 3) points; arrays pass as they are.
+        cloud = input_points(cloud, working_size=self.max_points)
         points = as_points(cloud, name=name, min_points=self.manifest.geometry.min_points)
         check_not_degenerate(points, name=name)
         return points
@@ -802,18 +797,6 @@ class Registrar:
             self.manifest.normalization,
             min_points=self.manifest.geometry.min_points,
         )
-
-
-def _view_points(cloud) -> np.ndarray:
-    """The points ``register`` would read from ``cloud`` (no checks beyond reading)."""
-    if isinstance(cloud, (str, Path)):
-        return read_registration_input(cloud, notify=lambda message: None)[0]
-    if isinstance(cloud, Mesh):
-        return cloud.sample()
-    points = open3d_points(cloud)
-    if points is None and (mesh := trimesh_mesh(cloud)) is not None:
-        points = mesh.sample()
-    return np.asarray(cloud if points is None else points, dtype=np.float64)
 
 
 def _seeded(config: RuntimeConfig, seed: int | None) -> RuntimeConfig:

@@ -278,6 +278,29 @@ def open3d_points(cloud) -> np.ndarray | None:
     return None
 
 
+def input_points(cloud, *, working_size: int = 1024, notify: Callable[[str], None] | None = None):
+    """What the registration reads from any input it takes: a file (a point cloud's points, a
+    mesh's seeded surface samples, :func:`read_registration_input`), a :class:`Mesh` or
+    ``trimesh.Trimesh`` (surface samples), an Open3D point cloud (its points); anything else
+    (arrays) is returned as it is, for the caller's checks.
+
+    Args:
+        cloud: the input.
+        working_size: the registration's working size (whether a PLY / OFF's vertices suffice).
+        notify: see :func:`read_registration_input`.
+    """
+    from .mesh import trimesh_mesh
+
+    if isinstance(cloud, (str, os.PathLike)):
+        return read_registration_input(cloud, working_size=working_size, notify=notify)[0]
+    if isinstance(cloud, Mesh):
+        return cloud.sample()
+    points = open3d_points(cloud)
+    if points is None and (mesh := trimesh_mesh(cloud)) is not None:
+        points = mesh.sample()
+    return cloud if points is None else points
+
+
 def check_format_available(path: str | os.PathLike) -> None:
     """Raise :class:`PointCloudFileError` unless ``path``'s format can be read and written here.
 
