@@ -232,6 +232,8 @@ def test_cli_refuses_a_mesh_output_for_a_point_cloud_source(tmp_path, sphere):
     logdesc_rt.write_point_cloud(source, sphere)
     logdesc_rt.write_point_cloud(target, sphere)
     assert main(["register", str(source), str(target), "--write-aligned", str(tmp_path / "out.stl")]) == 2
+    # --sample-surface with no mesh among the inputs is a mistake, said before any work.
+    assert main(["register", str(source), str(target), "--sample-surface", "2000"]) == 2
 
 
 def test_register_many_and_align_take_mesh_paths(shared_data, tmp_path):

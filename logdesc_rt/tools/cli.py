@@ -150,6 +150,15 @@ def _check_view(path: Path | None) -> None:
     check_view_available(path)
 
 
+def _check_sample_surface(sample_surface: int | None, paths: list[Path]) -> None:
+    """--sample-surface names a count for meshes: an error when no input is one."""
+    from ..io.mesh import is_mesh_file
+
+    if sample_surface is not None and not any(is_mesh_file(path) for path in paths):
+        raise ValueError(f"--sample-surface {sample_surface}: no input is a mesh (OBJ, STL, GLB/glTF, or a PLY/OFF "
+                         "with faces); point clouds are registered as they are")
+
+
 def _read_input(path: Path, sample_surface: int | None, working_size: int | None, progress) -> tuple:
     """(points, mesh or None) of an input file: ``--sample-surface`` applies to meshes only
     (mesh formats, PLY / OFF with faces); point clouds are used as they are."""
@@ -266,6 +275,7 @@ def _command_register(args) -> int:
             _check_format_library(args.write_aligned, "--write-aligned")
     _check_plot(args.plot)
     _check_view(args.view)
+    _check_sample_surface(args.sample_surface, [args.source, args.target])
     config = _runtime_config(args)
     init = _read_init(args.init) if args.init is not None else None
 
@@ -547,6 +557,7 @@ def _command_align(args) -> int:
         _check_output(args.pairs, "--pairs", PAIRS_OUTPUT_SUFFIXES)
     _check_plot(args.plot)
     _check_view(args.view)
+    _check_sample_surface(args.sample_surface, list(args.scans))
     _check_backend(args)
     runtime_config = _runtime_config(args)
     refine = AlignConfig.refine if args.refine is None else (None if args.refine == "none" else args.refine)
