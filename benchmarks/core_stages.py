@@ -26,7 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from logdesc_rt import GeometryConfig, compute_geometry  # noqa: E402
+from logdesc_rt import compute_geometry  # noqa: E402
+from logdesc_rt.config import PAPER_GEOMETRY  # noqa: E402
 from logdesc_rt.geometry import drop_self, edge_features, nearest_neighbours, pca_features, umbrella_normals  # noqa: E402
 from logdesc_rt.matching import sinkhorn_matches  # noqa: E402
 from logdesc_rt.pose import FsrConfig, fsr  # noqa: E402
@@ -67,7 +68,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args()
 
-    config = GeometryConfig()
+    config = PAPER_GEOMETRY  # the stages below are the paper geometry's (umbrella normals, its edges)
     clouds, source = load_clouds(args.shapes)
     stages: dict[str, list[float]] = {}
 

@@ -8,11 +8,11 @@ v3's normals), every source point with a true counterpart in the target is compa
 after undoing the true rotation:
 
 - **normal angle**: the angle between the two unit normals, sign ignored (0-90 degrees), for
-  the shipped umbrella normals (area temperature 1e-4), umbrella normals at temperature 1e-2
+  the paper's umbrella normals (area temperature 1e-4), umbrella normals at temperature 1e-2
   (the softmax then averages triangles instead of picking the largest), and v3's normal, the
   LRF's normal axis w (PCA over the 0.3-unit neighbourhood);
 - **sign agreement**: how often the two views give a normal, or an LRF axis, the same sign
-  (the shipped rules: w away from the cloud's centroid, u toward the neighbourhood's
+  (the paper geometry's rules: w away from the cloud's centroid, u toward the neighbourhood's
   centroid). v3's inputs are even in every sign, so for v3 no sign needs to agree;
 - **invariant edge agreement**: the mean absolute difference between the two views' v3 edge
   channels at corresponding points, per channel group (for reference, the channels' spread).
@@ -31,16 +31,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import command_line, machine_info, validation_pairs, write_report  # noqa: E402
-from logdesc_rt.config import GeometryConfig  # noqa: E402
+from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig  # noqa: E402
 from logdesc_rt.geometry import compute_geometry  # noqa: E402
 from logdesc_rt.geometry.normals import umbrella_normals  # noqa: E402
 from logdesc_rt.normalization import PairNormalization  # noqa: E402
 from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS  # noqa: E402
 
-SHIPPED = GeometryConfig()
+PAPER = PAPER_GEOMETRY  # the paper's umbrella normals and signed LRF
 V3 = GeometryConfig(edge_layout="invariant", normals="pca")
 AVERAGED_UMBRELLA_TEMPERATURE = 1e-2
-NORMALS = ("shipped umbrella (T 1e-4)", "umbrella, T 1e-2", "v3: PCA normal (LRF w)")
+NORMALS = ("paper umbrella (T 1e-4)", "umbrella, T 1e-2", "v3: PCA normal (LRF w)")
 # v3 edge channels grouped as in logdesc_rt/geometry/invariant_features.py.
 EDGE_GROUPS = {"distance": [0], "normal angles": [1, 2, 3], "bend": [4], "point shape": [5, 6, 7], "shape differences": [8, 9, 10]}
 
@@ -59,13 +59,13 @@ def pair_measurements(pair) -> dict[str, np.ndarray]:
     has_match = pair.gt_match >= 0
     mine, theirs = np.flatnonzero(has_match), pair.gt_match[has_match]
 
-    shipped = compute_geometry(source, SHIPPED), compute_geometry(target, SHIPPED)
+    paper = compute_geometry(source, PAPER), compute_geometry(target, PAPER)
     v3 = compute_geometry(source, V3), compute_geometry(target, V3)
     averaged = [
-        umbrella_normals(g.points, g.neighbour_index, g.pca.lrf, AVERAGED_UMBRELLA_TEMPERATURE) for g in shipped
+        umbrella_normals(g.points, g.neighbour_index, g.pca.lrf, AVERAGED_UMBRELLA_TEMPERATURE) for g in paper
     ]
     normals = {
-        NORMALS[0]: (shipped[0].normals, shipped[1].normals),
+        NORMALS[0]: (paper[0].normals, paper[1].normals),
         NORMALS[1]: tuple(averaged),
         NORMALS[2]: (v3[0].normals, v3[1].normals),
     }
@@ -75,9 +75,9 @@ def pair_measurements(pair) -> dict[str, np.ndarray]:
         out[f"angle/{name}"] = np.degrees(np.arccos(np.clip(np.abs(cosine), 0.0, 1.0)))
         out[f"sign/{name}"] = cosine > 0
     for axis, column in (("u", 0), ("w", 2)):
-        a = shipped[0].pca.lrf[mine, :, column] @ rotation.T
-        b = shipped[1].pca.lrf[theirs, :, column]
-        out[f"sign/shipped LRF {axis}"] = np.einsum("nc,nc->n", a, b) > 0
+        a = paper[0].pca.lrf[mine, :, column] @ rotation.T
+        b = paper[1].pca.lrf[theirs, :, column]
+        out[f"sign/paper LRF {axis}"] = np.einsum("nc,nc->n", a, b) > 0
     # Edge features: the same neighbour sets are not guaranteed across views, so compare the
     # per-point channel means over the k neighbours (what a max/mean pool would see).
     pooled_source = v3[0].edges.mean(axis=1)[mine]
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
 
     protocols = list(results)
     lines = [
-        "# Geometry agreement at corresponding points: shipped (paper) geometry against v3",
+        "# Geometry agreement at corresponding points: the paper geometry against v3's",
         "",
         f"`{command_line()}`: {args.pairs} validation pairs per protocol (held-out training shapes, "
         "never the test split), every source point with a true counterpart.",
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *table_header("sign", protocols),
     ]
-    for name in ("shipped LRF u", "shipped LRF w", NORMALS[0], NORMALS[2]):
+    for name in ("paper LRF u", "paper LRF w", NORMALS[0], NORMALS[2]):
         cells = [f"{100 * results[p][f'sign/{name}']['agreement']:.1f} %" for p in protocols]
         label = f"{name} normal" if name in NORMALS else name
         lines.append(f"| {label} | " + " | ".join(cells) + " |")

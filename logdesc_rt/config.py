@@ -70,8 +70,9 @@ class GeometryConfig(_DictMixin):
     pca_min_neighbours: int = 8
     umbrella_neighbours: int = 30
     umbrella_area_temperature: float = 1e-4
-    edge_layout: str = "paper"
-    normals: str = "umbrella"
+    # The defaults are the shipped model's (v3): invariant edges on PCA normals.
+    edge_layout: str = "invariant"
+    normals: str = "pca"
 
     def __post_init__(self) -> None:
         if self.edge_layout not in EDGE_LAYOUTS:
@@ -105,6 +106,19 @@ class GeometryConfig(_DictMixin):
     def edge_channels(self) -> int:
         """Channels of the (N, k, C) edge-feature tensor this layout produces."""
         return EDGE_CHANNELS[self.edge_layout]
+
+    @classmethod
+    def from_stored(cls, values: dict[str, Any]) -> "GeometryConfig":
+        """A geometry as a checkpoint or a manifest stored it. Files written before the edge
+        layouts existed (no ``edge_layout`` key: the paper-architecture small-h100 models) hold
+        the paper's geometry, not today's defaults."""
+        if "edge_layout" not in values:
+            values = {"edge_layout": "paper", "normals": "umbrella", **values}
+        return cls.from_dict(values)
+
+
+PAPER_GEOMETRY = GeometryConfig(edge_layout="paper", normals="umbrella")
+"""The paper's geometry: its 15 edge channels on triangle-umbrella normals (the small-h100 models)."""
 
 
 @dataclass(frozen=True)

@@ -100,7 +100,7 @@ class ModelManifest:
         if values.get("format") != MANIFEST_FORMAT:
             raise ValueError(f"manifest format {values.get('format')!r}, expected {MANIFEST_FORMAT}")
         return cls(
-            geometry=GeometryConfig.from_dict(values["geometry"]),
+            geometry=GeometryConfig.from_stored(values["geometry"]),
             normalization=NormalizationConfig.from_dict(values["normalization"]),
             matching=MatchingConfig.from_dict(values["matching"]),
             dustbin_score=float(values["dustbin_score"]),

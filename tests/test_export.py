@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
 from logdesc_rt import Registrar  # noqa: E402
-from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig  # noqa: E402
+from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig, MatchingConfig, NormalizationConfig  # noqa: E402
 from logdesc_rt.demo import make_demo_pair  # noqa: E402
 from logdesc_rt.matching import sinkhorn_matches  # noqa: E402
 from logdesc_rt.network import OnnxNetwork, bundled_model_dir  # noqa: E402
@@ -48,7 +48,7 @@ def test_export_script_writes_a_loadable_checked_model(tmp_path):
         {
             "model": LoGDescMatcher(config).state_dict(),
             "model_config": config.to_dict(),
-            "geometry_config": GeometryConfig().to_dict(),
+            "geometry_config": PAPER_GEOMETRY.to_dict(),
             "normalization_config": NormalizationConfig().to_dict(),
             "matching_config": MatchingConfig().to_dict(),
             "train_args": {"points_per_cloud": 1024},

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from logdesc_rt import GeometryConfig, compute_geometry
+from logdesc_rt.config import PAPER_GEOMETRY  # these tests check the paper geometry's rules
 from logdesc_rt.errors import (
     DegenerateGeometryError,
     LogdescError,
@@ -30,7 +31,7 @@ def grid_plane(side: int = 40, extent: float = 1.0) -> np.ndarray:
 
 def test_plane_has_planarity_one_and_its_normal():
     points = grid_plane()
-    geometry = compute_geometry(points)
+    geometry = compute_geometry(points, PAPER_GEOMETRY)
     interior = np.abs(points[:, :2]).max(axis=1) < 1.0 - 0.3  # full disc within the PCA radius
     assert interior.sum() > 100
     assert np.all(geometry.pca.planarity[interior] > 0.99)
@@ -54,7 +55,7 @@ def test_line_has_anisotropy_one():
 
 def test_sphere_normals_are_radial_and_outward():
     points = fibonacci_sphere(2000)
-    geometry = compute_geometry(points)
+    geometry = compute_geometry(points, PAPER_GEOMETRY)
     radial = points / np.linalg.norm(points, axis=1, keepdims=True)
     cosine = np.sum(geometry.normals * radial, axis=1)
     assert cosine.min() > 0.99, cosine.min()
@@ -62,7 +63,7 @@ def test_sphere_normals_are_radial_and_outward():
 
 
 def test_lrf_is_a_rotation(sphere):
-    lrf = compute_geometry(sphere).pca.lrf
+    lrf = compute_geometry(sphere, PAPER_GEOMETRY).pca.lrf
     assert np.allclose(lrf.transpose(0, 2, 1) @ lrf, np.eye(3), atol=1e-9)
     assert np.allclose(np.linalg.det(lrf), 1.0, atol=1e-9)
 
@@ -73,7 +74,7 @@ def test_geometry_moves_with_the_cloud():
     points = rng.normal(size=(600, 3)) * [1.0, 0.6, 0.3]
     pose = random_rigid_transform(rng)
     moved = points @ pose[:3, :3].T + pose[:3, 3]
-    before, after = compute_geometry(points), compute_geometry(moved)
+    before, after = compute_geometry(points, PAPER_GEOMETRY), compute_geometry(moved, PAPER_GEOMETRY)
     assert np.array_equal(before.neighbour_index, after.neighbour_index)
     assert np.allclose(before.normals @ pose[:3, :3].T, after.normals, atol=1e-6)
     assert np.allclose(pose[:3, :3] @ before.pca.lrf, after.pca.lrf, atol=1e-6)
@@ -84,7 +85,7 @@ def test_geometry_moves_with_the_cloud():
 def test_edge_feature_layout():
     rng = np.random.default_rng(0)
     points = rng.normal(size=(200, 3))
-    g = compute_geometry(points)
+    g = compute_geometry(points, PAPER_GEOMETRY)
     i, j = 17, 4
     m = g.neighbour_index[i, j]
     shape = np.stack([g.pca.anisotropy, g.pca.planarity, g.pca.omnivariance], axis=1)
@@ -96,7 +97,7 @@ def test_edge_feature_layout():
 
 
 def test_same_input_same_output(sphere):
-    first, second = compute_geometry(sphere), compute_geometry(sphere.copy())
+    first, second = compute_geometry(sphere, PAPER_GEOMETRY), compute_geometry(sphere.copy(), PAPER_GEOMETRY)
     assert np.array_equal(first.edges, second.edges)
     assert np.array_equal(first.normals, second.normals)
 
@@ -125,7 +126,7 @@ def test_neighbours_exclude_self_even_with_duplicates():
 )
 def test_bad_input_raises_a_named_error(points, error, message):
     with pytest.raises(error, match=message):
-        compute_geometry(points)
+        compute_geometry(points, PAPER_GEOMETRY)
 
 
 SMALL = GeometryConfig(pca_max_neighbours=8, pca_min_neighbours=4, umbrella_neighbours=4)
@@ -160,3 +161,17 @@ def test_finite_input_gives_finite_unit_normals(points):
         return
     assert np.isfinite(geometry.edges).all()
     assert np.allclose(np.linalg.norm(geometry.normals, axis=1), 1.0)
+
+
+def test_defaults_are_the_shipped_geometry_and_old_files_keep_the_papers():
+    import json
+    from pathlib import Path
+
+    import logdesc_rt
+
+    manifest = json.loads((Path(logdesc_rt.__file__).parent / "models" / "manifest.json").read_text())
+    assert GeometryConfig() == GeometryConfig.from_stored(manifest["geometry"])  # the bundled model's
+    # A geometry stored before the edge layouts existed (small-h100-v2's) is the paper's.
+    legacy = {key: value for key, value in GeometryConfig().to_dict().items() if key not in ("edge_layout", "normals")}
+    assert GeometryConfig.from_stored(legacy) == PAPER_GEOMETRY
+    assert GeometryConfig.from_stored({**legacy, "edge_layout": "chiral"}).edge_layout == "chiral"

@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from logdesc_rt.config import GeometryConfig  # noqa: E402
+from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig  # noqa: E402
 from logdesc_rt.geometry import compute_geometry  # noqa: E402
 from logdesc_rt.synthetic import make_pair  # noqa: E402
 from training.geometry_torch import invariant_geometry  # noqa: E402
@@ -57,6 +57,6 @@ def test_torch_geometry_on_a_real_partial_pair(shared_data):
 
 def test_torch_geometry_refuses_the_paper_layout_and_tiny_clouds():
     with pytest.raises(ValueError, match="invariant and chiral layouts"):
-        invariant_geometry(torch.zeros(1, 40, 3), GeometryConfig())
+        invariant_geometry(torch.zeros(1, 40, 3), PAPER_GEOMETRY)
     with pytest.raises(ValueError, match="neighbours need at least"):
         invariant_geometry(torch.zeros(1, 20, 3, dtype=torch.float64), V3)

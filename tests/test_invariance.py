@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from logdesc_rt import Registrar
-from logdesc_rt.config import GeometryConfig
+from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig
 from logdesc_rt.geometry import compute_geometry
 
 from .shapes import fibonacci_sphere
@@ -98,8 +98,8 @@ def test_chiral_channels_do_not_depend_on_normal_or_axis_signs(shape):
 
 def test_paper_edges_do_change_under_rotation(shape):
     """The paper's layout holds absolute coordinates: the same check fails for it."""
-    reference = compute_geometry(shape, GeometryConfig())
-    moved = compute_geometry(ROTATIONS["90 deg about z"].apply(shape), GeometryConfig())
+    reference = compute_geometry(shape, PAPER_GEOMETRY)
+    moved = compute_geometry(ROTATIONS["90 deg about z"].apply(shape), PAPER_GEOMETRY)
     assert np.abs(reference.edges - moved.edges).max() > 0.1
 
 

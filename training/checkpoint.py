@@ -65,8 +65,9 @@ def model_from_checkpoint(checkpoint: dict, device="cpu"):
 
 
 def configs_from_checkpoint(checkpoint: dict) -> tuple[GeometryConfig, NormalizationConfig]:
-    """The geometry and normalisation the checkpoint was trained with (defaults if absent)."""
-    geometry = GeometryConfig.from_dict(checkpoint.get("geometry_config", {}))
+    """The geometry and normalisation the checkpoint was trained with (a checkpoint from before the
+    edge layouts holds the paper's geometry; the normalisation's defaults where absent)."""
+    geometry = GeometryConfig.from_stored(checkpoint.get("geometry_config", {}))
     normalization = NormalizationConfig.from_dict(checkpoint.get("normalization_config", {}))
     return geometry, normalization
 

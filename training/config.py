@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from logdesc_rt.config import EDGE_CHANNELS, GeometryConfig, _DictMixin
+from logdesc_rt.config import EDGE_CHANNELS, PAPER_GEOMETRY, GeometryConfig, _DictMixin
 from logdesc_rt.geometry.edge_features import EDGE_FEATURE_CHANNELS
 
 ROTARY_MODES = ("per_layer", "once")
@@ -181,7 +181,7 @@ class ModelConfig(_DictMixin):
             # v3 reads the 11 invariant channels; v4 the 13 of the chiral layout.
             layout = "chiral" if self.edge_channels == EDGE_CHANNELS["chiral"] else "invariant"
             return GeometryConfig(edge_layout=layout, normals="pca")
-        return GeometryConfig()
+        return PAPER_GEOMETRY
 
     def to_dict(self) -> dict[str, Any]:
         values = dataclasses.asdict(self)
