@@ -32,7 +32,7 @@ import numpy as np
 
 from .errors import RegistrationError
 from .geometry import PointGeometry, compute_geometry
-from .io import input_points
+from .io import DEFAULT_WORKING_SIZE, input_points
 from .matching import Matches, sinkhorn_matches
 from .network import OnnxNetwork
 from .normalization import PairNormalization
@@ -148,7 +148,7 @@ class RegistrationResult:
         """
         from .tools.viewer import DEFAULT_MAX_POINTS, write_registration_view
 
-        working_size = (self.config.subsampling.max_points if self.config is not None else 0) or 1024
+        working_size = (self.config.subsampling.max_points if self.config is not None else 0) or DEFAULT_WORKING_SIZE
         source, target = (np.asarray(input_points(cloud, working_size=working_size, notify=lambda message: None),
                                      dtype=np.float64) for cloud in (source, target))
         return write_registration_view(

@@ -259,3 +259,9 @@ def test_without_trimesh_a_mesh_file_names_the_extra_and_a_ply_gives_its_vertice
     assert mesh is None and len(points) == 8  # the vertices, as before meshes were read
     assert len(notes) == 1 and "logdesc-rt[mesh]" in notes[0]
     assert main(["register", str(stl), str(ply)]) == 2  # stopped before any work, naming the extra
+
+
+def test_the_default_working_size_is_the_bundled_models():
+    from logdesc_rt.io import DEFAULT_WORKING_SIZE
+
+    assert logdesc_rt.Registrar().max_points == DEFAULT_WORKING_SIZE

@@ -71,6 +71,7 @@ from . import e57, las, npy, off, pcd, ply, text
 from ._common import PARSE_ERRORS, MissingLibraryError, check_readable_file, file_error
 from .mesh import (  # noqa: F401 (re-exported)
     DEFAULT_SURFACE_SAMPLES,
+    DEFAULT_WORKING_SIZE,
     MESH_ONLY_SUFFIXES,
     MESH_WRITE_SUFFIXES,
     Mesh,
@@ -278,7 +279,7 @@ def open3d_points(cloud) -> np.ndarray | None:
     return None
 
 
-def input_points(cloud, *, working_size: int = 1024, notify: Callable[[str], None] | None = None):
+def input_points(cloud, *, working_size: int = DEFAULT_WORKING_SIZE, notify: Callable[[str], None] | None = None):
     """What the registration reads from any input it takes: a file (a point cloud's points, a
     mesh's seeded surface samples, :func:`read_registration_input`), a :class:`Mesh` or
     ``trimesh.Trimesh`` (surface samples), an Open3D point cloud (its points); anything else

@@ -39,6 +39,9 @@ FACE_SUFFIXES: tuple[str, ...] = (".ply", ".off")
 """Point-cloud suffixes that may carry faces."""
 MESH_WRITE_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".stl", ".off", ".glb")
 """Suffixes :meth:`Mesh.write` writes (vertices and triangles)."""
+DEFAULT_WORKING_SIZE = 1024
+"""The bundled model's working size (points per cloud its networks see), for the vertex check when
+the caller has no model at hand (the CLI reads its inputs before loading one)."""
 DEFAULT_SURFACE_SAMPLES = 5000
 """Points sampled on a mesh's surface by default: about 5x the working size (1024), so the
 working subset's farthest-point sampling picks from an even, dense cover (the paper's femur
@@ -244,7 +247,7 @@ def read_registration_input(
     path: str | os.PathLike,
     *,
     sample_surface: int | None = None,
-    working_size: int = 1024,
+    working_size: int = DEFAULT_WORKING_SIZE,
     seed: int = 0,
     notify: Callable[[str], None] | None = None,
 ) -> tuple[np.ndarray, Mesh | None]:
@@ -280,7 +283,7 @@ def read_registration_input(
     if suffix in MESH_ONLY_SUFFIXES:
         mesh = read_mesh(path)
         return mesh.sample(sample_surface or DEFAULT_SURFACE_SAMPLES, seed), mesh
-    has_faces = suffix in FACE_SUFFIXES and file_has_faces(path)
+    has_faces = file_has_faces(path)
     if sample_surface is not None:
         if not has_faces:
             check_readable_file(path)

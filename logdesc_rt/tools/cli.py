@@ -162,12 +162,12 @@ def _check_sample_surface(sample_surface: int | None, paths: list[Path]) -> None
 def _read_input(path: Path, sample_surface: int | None, working_size: int | None, progress) -> tuple:
     """(points, mesh or None) of an input file: ``--sample-surface`` applies to meshes only
     (mesh formats, PLY / OFF with faces); point clouds are used as they are."""
-    from ..io import read_registration_input
+    from ..io import DEFAULT_WORKING_SIZE, read_registration_input
     from ..io.mesh import is_mesh_file
 
     is_mesh = is_mesh_file(path)
     points, mesh = read_registration_input(
-        path, sample_surface=sample_surface if is_mesh else None, working_size=working_size or 1024,
+        path, sample_surface=sample_surface if is_mesh else None, working_size=working_size or DEFAULT_WORKING_SIZE,
         notify=progress.warn,
     )
     sampled = mesh is not None and (sample_surface is not None or len(points) != len(mesh.vertices))

@@ -146,6 +146,8 @@ def write_registration_view(
                 label += f" ({len(chosen)} drawn)"
             add(_segments(go, beside[pairs[chosen, 0]], target[pairs[chosen, 1]], label, colour), "matches")
 
+    if not len(pairs):
+        del views["matches"]  # nothing to show beside the target
     title = registration_title(result, transformation, true_transformation, separator="<br>") or "registration"
     good = result is None or result.success
     figure = go.Figure(data=traces)
@@ -234,7 +236,7 @@ def _layout(figure, title: str, colour: str, views: dict[str, list[bool]] | None
             "buttons": [
                 {"label": name, "method": "restyle",
                  "args": [{"visible": [True if shown else "legendonly" for shown in members]}]}
-                for name, members in views.items() if any(members[3:]) or name != "matches"
+                for name, members in views.items()
             ],
         }])
 
