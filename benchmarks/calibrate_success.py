@@ -223,7 +223,8 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     """Every distinct hypothesis of one cached pair: features and whether it is right."""
     from logdesc_rt.metrics import rotation_error_deg
     from logdesc_rt.normalization import PairNormalization
-    from logdesc_rt.verification import PoseVerifier, candidate_poses
+    from logdesc_rt.pose.candidates import candidate_poses
+    from logdesc_rt.verification import PoseVerifier
 
     data = np.load(path)
     if len(data["confidence"]) < 3:

@@ -155,25 +155,32 @@ class MatchingConfig(_DictMixin):
     Attributes:
         sinkhorn_iterations: 50 in the official code.
         match_threshold: a mutual best match is kept if its assignment probability exceeds this.
-        dustbin_in_mutual_test: True (the paper's reading): a point whose largest entry is its
-            dustbin is unmatched. False: each point's best real partner, kept when mutual, however
-            much mass the dustbin holds (the dustbin still shapes the plan); on scan pairs, where
-            a trained matcher sends most points to the dustbin, this keeps about ten times the
-            matches at a similar inlier share, for the robust estimators to sort
-            (``training/results/v4_cycle2/README.md``). The success flag is calibrated for the
-            model's own setting: a model switched by hand keeps a calibration fitted on other
-            match counts.
+        dustbin_in_mutual_test: False (default, from v4): each point's best real partner, kept
+            when it is mutual, however much mass the dustbin holds (the dustbin still shapes the
+            plan); on scan pairs, where a trained matcher sends most points to the dustbin, this
+            keeps about ten times the matches at a similar inlier share, for the robust
+            estimators and verification to sort (``training/results/v4_cycle2/README.md``).
+            True (the paper's reading, and every model stored before the option, v3 included):
+            a point whose largest entry is its dustbin is unmatched. The success flag is
+            calibrated for the model's own setting: a model switched by hand keeps a
+            calibration fitted on other match counts.
     """
 
     sinkhorn_iterations: int = 50
     match_threshold: float = 0.0
-    dustbin_in_mutual_test: bool = True
+    dustbin_in_mutual_test: bool = False
 
     def __post_init__(self) -> None:
         if self.sinkhorn_iterations < 1:
             raise ValueError("MatchingConfig.sinkhorn_iterations must be >= 1")
         if not 0.0 <= self.match_threshold < 1.0:
             raise ValueError("MatchingConfig.match_threshold must be in [0, 1)")
+
+    @classmethod
+    def from_stored(cls, values: dict[str, Any]) -> "MatchingConfig":
+        """A matching as a manifest or checkpoint stored it. Files written before the
+        ``dustbin_in_mutual_test`` option (v3 and earlier) matched with the paper's reading."""
+        return cls.from_dict({"dustbin_in_mutual_test": True, **values})
 
 
 # ----------------------------------------------------------------------------- runtime stages
@@ -406,6 +413,10 @@ class RansacConfig(_DictMixin):
 
 
 SUBSAMPLING_METHODS = ("fps", "voxel")
+DEFAULT_WORKING_SIZE = 1024
+"""The bundled model's working size (points per cloud its networks see), for code that has no
+model at hand (the CLI reads its inputs before loading one; a checkpoint without the value);
+tests hold it equal to the bundled manifest's."""
 REFINEMENT_METHODS = ("point_to_point", "point_to_plane")
 
 

@@ -25,6 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import logsumexp
 
+from .config import MatchingConfig
+
+_DEFAULTS = MatchingConfig()  # one home for the defaults below
+
 def _augmented_scores(scores: np.ndarray, dustbin_score: float) -> np.ndarray:
     """(N, M) scores -> (N+1, M+1) float64 with the dustbin row and column set to alpha."""
     scores = np.asarray(scores, dtype=np.float64)
@@ -50,7 +54,7 @@ def _log_marginals(rows: int, columns: int) -> tuple[np.ndarray, np.ndarray, flo
     return log_row, log_column, log_total
 
 
-def log_optimal_transport(scores, dustbin_score: float, iterations: int = 50) -> np.ndarray:
+def log_optimal_transport(scores, dustbin_score: float, iterations: int = _DEFAULTS.sinkhorn_iterations) -> np.ndarray:
     """Sinkhorn-normalised log-assignment with a dustbin.
 
     Args:
@@ -83,7 +87,11 @@ def log_domain_sinkhorn(
 
 
 def sinkhorn_matches(
-    scores, dustbin_score: float, iterations: int = 50, threshold: float = 0.0, dustbin_in_mutual_test: bool = True
+    scores,
+    dustbin_score: float,
+    iterations: int = _DEFAULTS.sinkhorn_iterations,
+    threshold: float = _DEFAULTS.match_threshold,
+    dustbin_in_mutual_test: bool = _DEFAULTS.dustbin_in_mutual_test,
 ) -> "Matches":
     """Mutual best matches of the Sinkhorn assignment, read without any log-assignment matrix.
 
@@ -173,7 +181,11 @@ class Matches:
         return len(self.source_index)
 
 
-def mutual_matches(log_assignment: np.ndarray, threshold: float = 0.0, dustbin_in_mutual_test: bool = True) -> Matches:
+def mutual_matches(
+    log_assignment: np.ndarray,
+    threshold: float = _DEFAULTS.match_threshold,
+    dustbin_in_mutual_test: bool = _DEFAULTS.dustbin_in_mutual_test,
+) -> Matches:
     """Source point i matches target point j when each is the other's best, dustbin included
     (or, with ``dustbin_in_mutual_test=False``, among the real points only).
 

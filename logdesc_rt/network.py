@@ -102,7 +102,7 @@ class ModelManifest:
         return cls(
             geometry=GeometryConfig.from_stored(values["geometry"]),
             normalization=NormalizationConfig.from_dict(values["normalization"]),
-            matching=MatchingConfig.from_dict(values["matching"]),
+            matching=MatchingConfig.from_stored(values["matching"]),
             dustbin_score=float(values["dustbin_score"]),
             points_per_cloud=int(values["points_per_cloud"]),
             descriptor_dim=int(values["descriptor_dim"]),

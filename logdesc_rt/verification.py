@@ -7,19 +7,8 @@ confidence reaching a threshold. The model's coefficients and the threshold were
 validation pairs only (``benchmarks/calibrate_success.py``; what and how in
 ``benchmarks/results/success_calibration.md``).
 
-Candidates (network units, from the mutual matches and their Sinkhorn confidences):
-
-- ``fsr``: the paper's estimator (:func:`~logdesc_rt.pose.fsr`);
-- ``ransac``: 3-point RANSAC (:func:`~logdesc_rt.pose.ransac`);
-- ``svd``: confidence-weighted SVD on every match (outliers included);
-- ``top_k``: SVD on the most confident ``top_k_fraction`` of the matches, then re-solved on
-  its inliers;
-- ``core``: the maximum consistent core of the matches (:mod:`~logdesc_rt.pose.consistency`:
-  the largest set whose pairwise distances agree in both clouds), SVD on it, re-solved on its
-  inliers; it holds up to about 90 % wrong matches, where FSR breaks at about half.
-
-Which of them run is the model's choice (``VerificationConfig.candidates``), since a
-calibration is fitted with one set.
+The candidates come from :mod:`logdesc_rt.pose.candidates`; which of them run is the
+model's choice (``VerificationConfig.candidates``), since a calibration is fitted with one set.
 
 Candidates closer than ``same_pose_deg`` (and the inlier distance) are one hypothesis; how
 many estimators agree on it is a feature.
@@ -39,7 +28,7 @@ Features of a pose T (all lengths relative to the pair's scale s, the larger clo
   10-neighbour PCA of each subset), 0 without inliers: wrong poses cross surfaces;
 - ``match_inlier_ratio``: confidence-weighted share of the learned matches that T maps within
   ``match_tolerance * s`` of their partner;
-- ``log_matches``: log(1 + number of mutual matches) / log(1 + 1024);
+- ``log_matches``: log(1 + number of mutual matches) / log(1 + 1024), the working size;
 - ``agreement``: share of the candidate estimators (``VerificationConfig.candidates``; a user's
   initial guess does not count) whose pose is this hypothesis;
 - ``margin``: fitness of this hypothesis minus that of the best other distinct hypothesis,
@@ -63,15 +52,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .config import CANDIDATE_ESTIMATORS, VERIFICATION_FEATURES, VerificationConfig
-from .errors import DegenerateGeometryError, TooFewPointsError
+from .config import VERIFICATION_FEATURES, VerificationConfig
+from .config import DEFAULT_WORKING_SIZE
 from .metrics import rotation_error_deg
-from .pose import FsrConfig, RansacConfig, fsr, ransac, rigid_transform_svd
-from .pose.consistency import consistency_pose
-from .pose.svd import refine_on_inliers
 from .refinement import estimate_normals, icp
 
-LOG_MATCH_SCALE = math.log1p(1024.0)  # the working size the bundled model was trained at
+LOG_MATCH_SCALE = math.log1p(DEFAULT_WORKING_SIZE)  # the working size the bundled model was trained at
 
 
 @dataclass(frozen=True)
@@ -114,75 +100,6 @@ class VerificationResult:
     best: Hypothesis
     hypotheses: tuple[Hypothesis, ...] = field(default_factory=tuple)
     candidate_count: int = 0
-
-
-def estimate_pose(
-    estimator: str,
-    source_matched: np.ndarray,
-    target_matched: np.ndarray,
-    confidences: np.ndarray,
-    fsr_config: FsrConfig = FsrConfig(),
-    ransac_config: RansacConfig = RansacConfig(),
-    top_k_fraction: float = VerificationConfig.top_k_fraction,
-) -> np.ndarray:
-    """(4, 4) network-frame pose of one candidate estimator from matched points.
-
-    Args:
-        estimator: one of CANDIDATE_ESTIMATORS (module docstring).
-        source_matched, target_matched: (K, 3) float64 matched points, K >= 3, network units.
-        confidences: (K,) float64 match probabilities.
-        fsr_config, ransac_config: the two robust estimators' parameters (and seeds).
-        top_k_fraction: share of the most confident matches the "top_k" candidate fits.
-
-    Raises:
-        ValueError: unknown estimator.
-        DegenerateGeometryError, TooFewPointsError: the matches do not determine a pose.
-    """
-    if estimator == "fsr":
-        return fsr(source_matched, target_matched, confidences, fsr_config).transformation
-    if estimator == "ransac":
-        return ransac(source_matched, target_matched, ransac_config).transformation
-    if estimator == "svd":
-        return rigid_transform_svd(source_matched, target_matched, confidences)
-    if estimator == "core":
-        return consistency_pose(
-            source_matched, target_matched, confidences, fsr_config.inlier_threshold, fsr_config.refit_rounds
-        )
-    if estimator == "top_k":
-        count = max(3, int(round(top_k_fraction * len(confidences))))
-        chosen = np.argsort(-confidences, kind="stable")[:count]
-        pose = rigid_transform_svd(source_matched[chosen], target_matched[chosen], confidences[chosen])
-        return refine_on_inliers(
-            pose, source_matched, target_matched, confidences, fsr_config.inlier_threshold, fsr_config.refit_rounds
-        )
-    raise ValueError(f"estimator {estimator!r}: expected one of {CANDIDATE_ESTIMATORS}")
-
-
-def candidate_poses(
-    source_matched: np.ndarray,
-    target_matched: np.ndarray,
-    confidences: np.ndarray,
-    fsr_config: FsrConfig = FsrConfig(),
-    ransac_config: RansacConfig = RansacConfig(),
-    top_k_fraction: float = VerificationConfig.top_k_fraction,
-    estimators: tuple[str, ...] = VerificationConfig.candidates,
-) -> list[tuple[str, np.ndarray]]:
-    """The poses of ``estimators`` (:func:`estimate_pose`), network units.
-
-    Returns:
-        [(estimator name, (4, 4) network-frame pose)], in ``estimators`` order, leaving out an
-        estimator whose points are degenerate (all on a line, say).
-    """
-    candidates: list[tuple[str, np.ndarray]] = []
-    for name in estimators:
-        try:
-            pose = estimate_pose(
-                name, source_matched, target_matched, confidences, fsr_config, ransac_config, top_k_fraction
-            )
-        except (DegenerateGeometryError, TooFewPointsError):
-            continue
-        candidates.append((name, pose))
-    return candidates
 
 
 def _same_pose(first: np.ndarray, second: np.ndarray, degrees: float, distance: float, centre: np.ndarray) -> bool:

@@ -1,4 +1,10 @@
-"""Shared fixtures: a sphere and the shared data folder (skips when absent)."""
+"""Shared fixtures: a sphere and the shared data folder.
+
+Real-data tests are those that take the ``shared_data`` fixture (directly or through another
+fixture); they are marked ``real_data`` at collection (``pytest -m real_data`` runs them
+alone). Without ``../shared/data`` they skip, except under CI (``LOGDESC_REQUIRE_SHARED_DATA``),
+where the suite stops at once and any real-data test that skips fails instead.
+"""
 
 from __future__ import annotations
 
@@ -27,7 +33,27 @@ def sphere() -> np.ndarray:
     return fibonacci_sphere(1024)
 
 
-@pytest.fixture
+def pytest_configure(config) -> None:
+    config.addinivalue_line("markers", "real_data: needs ../shared/data (ModelNet, the Bunny scans)")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.real_data)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Under CI a real-data test may not skip: a file missing from the shared data is a failure."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.skipped and os.environ.get(REQUIRE_SHARED_DATA) and item.get_closest_marker("real_data"):
+        report.outcome = "failed"
+        report.longrepr = f"{REQUIRE_SHARED_DATA} is set but this real-data test skipped: {report.longrepr}"
+
+
+@pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data not found at {SHARED_DATA}")

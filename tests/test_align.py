@@ -53,10 +53,8 @@ def bunny_scans(mesh: np.ndarray, views_deg, seed: int = 0, points: int = 6000):
 
 
 @pytest.fixture(scope="module")
-def mesh() -> np.ndarray:
-    from .conftest import SHARED_DATA
-
-    path = SHARED_DATA / "stanford_bunny" / "reconstruction" / "bun_zipper.ply"
+def mesh(shared_data) -> np.ndarray:
+    path = shared_data / "stanford_bunny" / "reconstruction" / "bun_zipper.ply"
     if not path.exists():
         pytest.skip(f"Bunny mesh not found at {path}")
     return read_point_cloud(path)

@@ -238,15 +238,10 @@ def test_protocol_mix_and_schedule():
     with pytest.raises(ValueError):
         parse_protocol_mix("dirty:1")
     schedule = ProtocolSchedule(
-        mix=parse_protocol_mix("partial"), start_mix=parse_protocol_mix("clean"), curriculum_steps=100,
-        points_per_cloud=1024, early_points_per_cloud=256, early_steps=10,
+        mix=parse_protocol_mix("clean:0.25,partial:0.75"), points_per_cloud=1024, scan_points_per_cloud=768,
     )
-    assert schedule.protocol_at(0, 0.99) == "clean"
-    assert schedule.protocol_at(100, 0.01) == "partial"
-    assert schedule.mix_at(50) == pytest.approx(
-        {"clean": 0.5, "noisy": 0.0, "partial": 0.5, "resampled": 0.0, "resampled_partial": 0.0, "scan": 0.0}
-    )
-    assert schedule.points_at(9) == 256 and schedule.points_at(10) == 1024
+    assert schedule.protocol_at(0, 0.2) == "clean" and schedule.protocol_at(0, 0.3) == "partial"
+    assert schedule.points_at(0, "partial") == 1024 and schedule.points_at(0, "scan") == 768
 
 
 def test_batch_sampler_is_resumable_and_uniform_per_batch():
@@ -308,10 +303,8 @@ def test_dataset_collates_into_a_batch():
 
 # ----------------------------------------------------------------------------- real data
 @pytest.fixture(scope="module")
-def data_root() -> Path:
-    if not DATA_ROOT.is_dir():
-        pytest.skip(f"shared data not found at {DATA_ROOT}")
-    return DATA_ROOT
+def data_root(shared_data) -> Path:
+    return shared_data
 
 
 def test_read_modelnet_h5_point_counts(data_root):

@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
 from logdesc_rt import Registrar  # noqa: E402
-from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig, MatchingConfig, NormalizationConfig  # noqa: E402
+from logdesc_rt.config import PAPER_GEOMETRY, MatchingConfig, NormalizationConfig  # noqa: E402
 from logdesc_rt.demo import make_demo_pair  # noqa: E402
 from logdesc_rt.matching import sinkhorn_matches  # noqa: E402
 from logdesc_rt.network import OnnxNetwork, bundled_model_dir  # noqa: E402

@@ -106,7 +106,7 @@ def test_write_accepts_integer_lists_and_str_paths(tmp_path):
 # --------------------------------------------------------------------------------------
 
 
-def test_reads_stanford_bunny_scan():
+def test_reads_stanford_bunny_scan(shared_data):
     if not BUNNY_SCAN.is_file():
         pytest.skip(f"{BUNNY_SCAN} not available")
     text = BUNNY_SCAN.read_text()
@@ -121,7 +121,7 @@ def test_reads_stanford_bunny_scan():
     assert np.all(extent > 0.05) and np.all(extent < 0.5)  # a bunny, in metres
 
 
-def test_reads_stanford_bunny_scan_vertices_not_its_range_grid():
+def test_reads_stanford_bunny_scan_vertices_not_its_range_grid(shared_data):
     """The 40,256 vertex rows are read; the 204,800 range_grid rows after them are not points.
 
     (Reading speed belongs to benchmarks, not to an assertion on a shared machine.)
@@ -893,7 +893,7 @@ def test_normals_turn_with_the_pose_and_colours_do_not():
     assert np.array_equal(moved["red"], attributes["red"]) and np.array_equal(moved["intensity"], attributes["intensity"])
 
 
-def test_stanford_conf_poses_overlay_two_real_scans():
+def test_stanford_conf_poses_overlay_two_real_scans(shared_data):
     conf = BUNNY_SCAN.parent / "bun.conf"
     if not conf.is_file():
         pytest.skip(f"shared data not found at {conf}")

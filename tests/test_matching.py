@@ -58,16 +58,21 @@ def test_huge_score_ranges_stay_exact(scale):
 
 
 def test_mutual_matches_recover_a_permutation_and_the_dustbin():
+    """The paper's reading (dustbin in the mutual test) leaves points without a counterpart
+    unmatched; the default reading (the dustbin left out of it) keeps the permutation too."""
     rng = np.random.default_rng(3)
     permutation = rng.permutation(40)
     scores = np.full((40, 40), -5.0)
     scores[np.arange(40), permutation] = 5.0
     scores[:5] = -5.0  # the first five source points have no counterpart
-    matches = mutual_matches(log_optimal_transport(scores, dustbin_score=0.0, iterations=100))
+    log_assignment = log_optimal_transport(scores, dustbin_score=0.0, iterations=100)
+    matches = mutual_matches(log_assignment, dustbin_in_mutual_test=True)
     assignment = matches_as_array(matches, 40)
     assert np.all(assignment[:5] == -1)
     assert np.array_equal(assignment[5:], permutation[5:])
     assert np.all((matches.confidence > 0.5) & (matches.confidence <= 1.0))
+    default = matches_as_array(mutual_matches(log_assignment), 40)
+    assert np.array_equal(default[5:], permutation[5:])
 
 
 def test_same_input_same_output():
@@ -142,8 +147,11 @@ def test_float32_sinkhorn_threshold_and_empty_overlap():
     confident = sinkhorn_matches(scores, 1.0, 50, threshold=0.9)
     assert 0 < len(confident) < len(everything) or (everything.confidence > 0.9).all()
     assert (confident.confidence > 0.9).all()
-    # Nothing resembles anything: every point goes to the dustbin, no match, no error.
-    assert len(sinkhorn_matches(np.full((50, 40), -30.0, dtype=np.float32), 1.0, 50)) == 0
+    # Nothing resembles anything: every point goes to the dustbin, no match, no error (in the
+    # paper's reading; without the dustbin in the test, ties leave at most one mutual pair).
+    nothing = np.full((50, 40), -30.0, dtype=np.float32)
+    assert len(sinkhorn_matches(nothing, 1.0, 50, dustbin_in_mutual_test=True)) == 0
+    assert len(sinkhorn_matches(nothing, 1.0, 50)) <= 1
 
 
 def test_without_the_dustbin_in_the_mutual_test_every_mutual_real_best_is_kept():
@@ -153,7 +161,7 @@ def test_without_the_dustbin_in_the_mutual_test_every_mutual_real_best_is_kept()
     # A strong dustbin: with it in the test, most points stay unmatched.
     scores = rng.normal(scale=1.0, size=(80, 70))
     scores[np.arange(30), np.arange(30)] += 6.0  # 30 clear pairs
-    with_dustbin = sinkhorn_matches(scores, 4.0, 50)
+    with_dustbin = sinkhorn_matches(scores, 4.0, 50, dustbin_in_mutual_test=True)
     without = sinkhorn_matches(scores, 4.0, 50, dustbin_in_mutual_test=False)
     # The float32 reader and the float64 reference agree in both modes.
     reference = mutual_matches(log_optimal_transport(scores, 4.0, 50), dustbin_in_mutual_test=False)

@@ -22,13 +22,10 @@ from training.config import PRESETS, ModelConfig  # noqa: E402
 from training.losses import (  # noqa: E402
     assignment_nll,
     descriptor_infonce,
-    gap_loss,
     invert_matches,
 )
-from training.model import (  # noqa: E402
-    DescribeModule,
-    LoGDescMatcher,
-    MatchScoresModule,
+from training.model import DescribeModule, LoGDescMatcher, MatchScoresModule  # noqa: E402
+from training.paper_model import (  # noqa: E402
     NormalAngleBias,
     NormalEncoderTransformer,
     RotaryEncoding3D,
@@ -452,30 +449,12 @@ def test_ignored_points_add_no_term_to_any_loss():
     torch.testing.assert_close(assignment_nll(changed, gt_src, gt_tgt), assignment_nll(log_assignment, gt_src, gt_tgt))
     terms = [log_assignment[0, 0, 0], log_assignment[0, 2, 4], log_assignment[0, 3, 2], log_assignment[0, 5, 3]]
     torch.testing.assert_close(assignment_nll(log_assignment, gt_src, gt_tgt), -torch.stack(terms).mean())
-    # Gap loss: a confident right assignment of the labelled points scores 0 whatever the
-    # ignored source 1 and target 1 do with each other (as labels, -1 would have a hinge).
-    right = torch.full((1, 6, 5), -20.0)
-    right[0, 0, 0] = right[0, 2, 4] = right[0, 3, 2] = right[0, 5, 3] = right[0, 4, 4] = 0.0
-    right[0, 1, 1] = 0.0  # the two ignored points, most likely matched to each other
-    assert gap_loss(right, gt_src, gt_tgt).item() == 0.0
     as_unmatched = torch.where(gt_src == IGNORED, torch.full_like(gt_src, -1), gt_src)
-    assert gap_loss(right, as_unmatched, torch.where(gt_tgt == IGNORED, -1, gt_tgt)).item() > 1.0
     # InfoNCE counts matches only: ignored and unmatched are the same to it.
     descriptors = F.normalize(torch.randn(1, 5, 8, generator=generator), dim=-1)
     other = F.normalize(torch.randn(1, 4, 8, generator=generator), dim=-1)
     torch.testing.assert_close(descriptor_infonce(descriptors, other, gt_src),
                                descriptor_infonce(descriptors, other, as_unmatched))
-
-
-def test_gap_loss_is_zero_for_a_confident_right_assignment_and_positive_otherwise():
-    gt_src = torch.tensor([[1, 0, -1]])
-    gt_tgt = invert_matches(gt_src, 2)
-    right = torch.full((1, 4, 3), -20.0)
-    right[0, 0, 1] = right[0, 1, 0] = right[0, 2, 2] = 0.0  # matches and source 2 -> dustbin
-    assert gap_loss(right, gt_src, gt_tgt).item() == 0.0
-    wrong = torch.full((1, 4, 3), -20.0)
-    wrong[0, 0, 0] = wrong[0, 1, 1] = wrong[0, 3, 2] = 0.0
-    assert gap_loss(wrong, gt_src, gt_tgt).item() > 1.0
 
 
 def test_descriptor_infonce_prefers_matching_descriptors():

@@ -19,14 +19,10 @@ PLACEMENTS = [(5.0, 1.0), (1e3, 1.0), (1e5, 1.0), (1e3, 100.0), (1e5, 1000.0), (
 
 
 @pytest.fixture(scope="module")
-def scan_pair(request):
+def scan_pair(request, shared_data):
     """bun000 -> bun045 (3000 random source points, the full target), the truth, and a start 3 deg / 4 mm off."""
-    from .conftest import SHARED_DATA
-
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared data not found at {SHARED_DATA}")
-    source, _, truth = bunny_pair(SHARED_DATA, "bun000", "bun045", points=3000, seed=0)
-    _, target, _ = bunny_pair(SHARED_DATA, "bun000", "bun045")
+    source, _, truth = bunny_pair(shared_data, "bun000", "bun045", points=3000, seed=0)
+    _, target, _ = bunny_pair(shared_data, "bun000", "bun045")
     generator = np.random.default_rng(1)
     perturbation = np.eye(4)
     axis = generator.normal(size=3)

@@ -48,9 +48,7 @@ def _checkpoint(path: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> Path:
-    if not DATA_ROOT.is_dir():
-        pytest.skip(f"shared data not found at {DATA_ROOT}")
+def trained(tmp_path_factory, shared_data) -> Path:
     out = tmp_path_factory.mktemp("run")
     _run([sys.executable, "-m", "training.train", "--out", str(out), "--max-steps", "3", *COMMON])
     return out
@@ -96,9 +94,7 @@ def test_resume_auto_continues_step_and_wall_time(trained):
     assert int(next(iter(states.values()))["step"]) == 5
 
 
-def test_sigterm_writes_a_checkpoint(tmp_path):
-    if not DATA_ROOT.is_dir():
-        pytest.skip(f"shared data not found at {DATA_ROOT}")
+def test_sigterm_writes_a_checkpoint(tmp_path, shared_data):
     out = tmp_path / "sig"
     process = subprocess.Popen(
         [sys.executable, "-m", "training.train", "--out", str(out), "--max-steps", "100000",
@@ -193,10 +189,8 @@ def test_plot_marks_where_a_resumed_run_changed_its_pairs(tmp_path):
     assert plot_curves(log, tmp_path / "curves.png").stat().st_size > 10_000
 
 
-def test_geometry_on_the_device_trains_like_geometry_in_the_workers(tmp_path):
+def test_geometry_on_the_device_trains_like_geometry_in_the_workers(tmp_path, shared_data):
     """--geometry-on-device (the torch port) gives the v3 run the same losses, step for step."""
-    if not DATA_ROOT.is_dir():
-        pytest.skip(f"shared data not found at {DATA_ROOT}")
     options = [*COMMON, "--max-steps", "3", "--log-every", "1", "--threads", "1"]
     options[options.index("tiny")] = "tiny_v3"
     logs = []

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from logdesc_rt.config import GeometryConfig, NormalizationConfig
+from logdesc_rt.config import DEFAULT_WORKING_SIZE, GeometryConfig, NormalizationConfig
 
 # Keys of a checkpoint copied into an exported model's provenance.
 _PROVENANCE_KEYS = (
@@ -82,7 +82,7 @@ def load_model(path, device="cpu"):
     info = CheckpointInfo(
         geometry=geometry,
         normalization=normalization,
-        points_per_cloud=int(train_args.get("points_per_cloud") or 1024),
+        points_per_cloud=int(train_args.get("points_per_cloud") or DEFAULT_WORKING_SIZE),
         provenance=provenance,
     )
     return model_from_checkpoint(checkpoint, device), info

@@ -20,7 +20,7 @@ from logdesc_rt.geometry.edge_features import EDGE_FEATURE_CHANNELS
 
 ROTARY_MODES = ("per_layer", "once")
 # "logdesc": the paper's network (absolute positions, rotary encoding, RoCNet's normal-angle
-# term; training/model.py). "invariant": v3, invariant to rigid motion by construction
+# term; training/paper_model.py). "invariant": v3, invariant to rigid motion by construction
 # (training/invariant_model.py); it reads the "invariant" edge layout and PCA normals.
 ARCHITECTURES = ("logdesc", "invariant")
 
@@ -66,7 +66,7 @@ class ModelConfig(_DictMixin):
         normal_angle_base: u of the sinusoids (10000).
         normal_angle_bins: size of the angle table over [0, pi] that the factorised
             normal-angle attention term is interpolated from (see
-            :class:`training.model.NormalAngleBias`); linear interpolation on 1024 bins is
+            :class:`training.paper_model.NormalAngleBias`); linear interpolation on 1024 bins is
             accurate to ~1e-5 of the term's scale.
 
     Matching:

@@ -79,12 +79,14 @@ __all__ = [
     "parse_protocol_mix",
     "read_modelnet_h5",
     "split_training_shapes",
+    "run_split",
     "split_train_val_test",
     "validation_keys",
 ]
 
 # ----------------------------------------------------------------------------- constants
 DEFAULT_DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DEFAULT_VAL_FRACTION = 0.05  # of each training source's shapes, held out for validation
 MODELNET10_FOLDER = "modelnet10_hdf5_1024"
 MODELNET40_SUBSET_FOLDER = "modelnet40_subset_hdf5_2048"
 DENSE_FOLDER = "modelnet40_subset_10k"  # the ModelNet40 subset's shapes, 10,000 points with normals
@@ -252,7 +254,7 @@ def load_training_sources(
 
 
 def split_training_shapes(
-    sources: Sequence[tuple[str, ModelNetSplit]], val_fraction: float = 0.05, seed: int = 0
+    sources: Sequence[tuple[str, ModelNetSplit]], val_fraction: float = DEFAULT_VAL_FRACTION, seed: int = 0
 ) -> TrainingShapes:
     """Carve a fixed validation set from the training sources.
 
@@ -335,7 +337,8 @@ class ThreeWaySplit:
 
 
 def split_train_val_test(
-    sources: Sequence[tuple[str, ModelNetSplit]], val_fraction: float = 0.05, seed: int = 1, test_seed: int = 0
+    sources: Sequence[tuple[str, ModelNetSplit]], val_fraction: float = DEFAULT_VAL_FRACTION, seed: int = 1,
+    test_seed: int = 0
 ) -> ThreeWaySplit:
     """v4's split: test = the shapes v3 validated on, validation = a fresh draw from the rest.
 
@@ -356,6 +359,24 @@ def split_train_val_test(
             shape_ids=[data.shape_ids[index] for index in keep],
         )))
     return ThreeWaySplit(shapes=split_training_shapes(remaining, val_fraction, seed), test_names=frozenset(test_names))
+
+
+SPLITS = ("v3", "three-way")
+
+
+def run_split(
+    sources: Sequence[tuple[str, ModelNetSplit]], split: str = "v3", val_fraction: float = DEFAULT_VAL_FRACTION,
+    seed: int = 0,
+):
+    """The training / validation shapes of a run (``training.train``'s ``--split``,
+    ``--val-fraction`` and ``--seed``): "v3" is :func:`split_training_shapes`, "three-way" the
+    training and validation part of :func:`split_train_val_test`. Training and evaluation both
+    carve their split here, so ``--split val`` evaluates on the shapes the run validated on."""
+    if split == "three-way":
+        return split_train_val_test(sources, val_fraction, seed).shapes
+    if split == "v3":
+        return split_training_shapes(sources, val_fraction, seed)
+    raise ValueError(f"split {split!r}: expected one of {SPLITS}")
 
 
 # ----------------------------------------------------------------------------- protocol mix
@@ -389,42 +410,26 @@ def parse_protocol_mix(text: str | Mapping[str, float]) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class ProtocolSchedule:
-    """Protocol mix and cloud size as functions of the training step (the curriculum).
+    """Protocol mix and cloud size of the training batches.
 
-    The mix moves linearly from ``start_mix`` to ``mix`` over ``curriculum_steps`` steps (no
-    curriculum when 0). Clouds use ``early_points_per_cloud`` points for the first
-    ``early_steps`` steps, then ``points_per_cloud`` (1024 = the paper's protocol).
+    Every batch draws its protocol from ``mix``; clouds have ``points_per_cloud`` points (1024 =
+    the paper's protocol), scan pairs ``scan_points_per_cloud`` if set.
     """
 
     mix: Mapping[str, float]
-    start_mix: Mapping[str, float] | None = None
-    curriculum_steps: int = 0
     points_per_cloud: int = SOURCE_POINTS
-    early_points_per_cloud: int | None = None
-    early_steps: int = 0
     scan_points_per_cloud: int | None = None
 
-    def mix_at(self, step: int) -> dict[str, float]:
-        if self.start_mix is None or self.curriculum_steps <= 0 or step >= self.curriculum_steps:
-            return dict(self.mix)
-        fraction = step / self.curriculum_steps
-        return {
-            name: (1 - fraction) * self.start_mix.get(name, 0.0) + fraction * self.mix.get(name, 0.0)
-            for name in PROTOCOLS
-        }
-
     def points_at(self, step: int, protocol: str | None = None) -> int:
-        """Cloud size at ``step``; scan pairs have their own (``scan_points_per_cloud``) if set."""
+        """Cloud size of a batch of ``protocol`` (``step`` is kept for the sampler's call)."""
         if protocol == SCAN_PROTOCOL and self.scan_points_per_cloud is not None:
             return self.scan_points_per_cloud
-        if self.early_points_per_cloud is not None and step < self.early_steps:
-            return self.early_points_per_cloud
         return self.points_per_cloud
 
     def protocol_at(self, step: int, uniform: float) -> str:
         """Inverse-CDF draw of the step's protocol from a uniform number in [0, 1)."""
         cumulative = 0.0
-        mix = self.mix_at(step)
+        mix = self.mix
         for name in PROTOCOLS:
             cumulative += mix.get(name, 0.0)
             if uniform < cumulative:

@@ -12,22 +12,22 @@ Usage (from the repository root)::
 For every protocol, test pair i is built from test shape i with
 ``np.random.default_rng([seed, 0, i])`` (:class:`training.data.PairDataset`, epoch 0), so
 the same shape gets the same rigid motion under every protocol and every checkpoint sees the
-same pairs. The pipeline per pair mirrors the runtime:
+same pairs. Each pair is registered through the runtime's own path, as users get it:
 
-    torch network (scores) -> NumPy Sinkhorn and mutual matches
-    (logdesc_rt.matching.sinkhorn_matches, the runtime's reader) -> FSR in network units
-    (logdesc_rt.verification.estimate_pose, the runtime's estimator step)
-    -> PairNormalization.pose_to_user_frame -> paper metrics in the user (dataset) frame.
+    torch network (scores) -> logdesc_rt.pair.pair_from_scores (the runtime's Sinkhorn and
+    mutual test) -> logdesc_rt.pose_selection.register_matched (candidate poses, verification,
+    the success flag; ``--estimator auto`` by default, ``fsr`` for the paper's estimator alone)
+    -> paper metrics in the user (dataset) frame.
 
 Reported per protocol: RMSE(R), MAE(R) (Euler 'zyx' degrees), RMSE(t), MAE(t), L_R (deg), L_t,
 L_RMSE (logdesc_rt.metrics.registration_metrics) and the matching precision / accuracy / recall
 of the mutual matches (logdesc_rt.metrics.matching_metrics, averaged over pairs), plus the
-median L_R, the share of pairs with L_R < 5 degrees, and why the others missed
+median L_R, the share of pairs with L_R < 5 degrees, why the others missed
 (:attr:`PairResult.failure`: no pose, near miss, a symmetric alternative that fits as well as
-the truth, or wrong).
+the truth, or wrong), and the success flag's precision and recall.
 
-The functions (:func:`register_from_log_assignment`, :func:`evaluate_model`,
-:func:`summarize`, :func:`format_markdown`) are reusable by benchmarks.
+The functions (:func:`register_scored_batch`, :func:`evaluate_model`, :func:`summarize`,
+:func:`format_markdown`) are reusable by training and benchmarks.
 """
 
 from __future__ import annotations
@@ -49,17 +49,23 @@ if __package__ in (None, ""):  # run as ``python training/evaluate.py``: import 
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig, VerificationConfig
-from logdesc_rt.errors import InvalidPointCloudError
-from logdesc_rt.matching import Matches, matches_as_array, mutual_matches, sinkhorn_matches
+from logdesc_rt.config import (
+    POSE_ESTIMATORS,
+    GeometryConfig,
+    MatchingConfig,
+    NormalizationConfig,
+    RuntimeConfig,
+    VerificationConfig,
+)
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, registration_metrics, rotation_error_deg
 from logdesc_rt.normalization import PairNormalization
-from logdesc_rt.pose import FsrConfig
-from logdesc_rt.registration import MIN_MATCHES
-from logdesc_rt.verification import estimate_pose
+from logdesc_rt.pair import pair_from_scores
+from logdesc_rt.pose_selection import register_matched
+from logdesc_rt.results import RegistrationResult
 from training.checkpoint import configs_from_checkpoint, load_checkpoint, model_from_checkpoint
 from training.data import (
     DEFAULT_DATA_ROOT,
+    DEFAULT_VAL_FRACTION,
     MODELNET10_FOLDER,
     PAPER_PROTOCOLS,
     PROTOCOLS,
@@ -69,7 +75,7 @@ from training.data import (
     fixed_pair_batches,
     load_modelnet,
     load_training_sources,
-    split_training_shapes,
+    run_split,
 )
 
 __all__ = [
@@ -78,12 +84,13 @@ __all__ = [
     "evaluate_checkpoint",
     "evaluate_model",
     "evaluation_keys",
+    "matched_source_array",
     "format_markdown",
     "load_checkpoint",
     "model_from_checkpoint",
     "modelnet10_test_dataset",
-    "register_from_log_assignment",
-    "register_from_matches",
+    "evaluation_config",
+    "register_scored_batch",
     "summarize",
     "validation_dataset",
 ]
@@ -110,9 +117,13 @@ class PairResult:
         pred_match: (N,) int64 predicted target index per source point, -1 unmatched.
         gt_match: (N,) int64 true counterpart, -1 none, -2 ignored (resampled pairs).
         match_count: number of mutual matches.
-        pose_failed: True when FSR could not run (fewer than 3 usable matches or degenerate
-            geometry); the identity was used.
-        seconds: wall time of Sinkhorn + matching + FSR for this pair (network excluded).
+        pose_failed: True when no pose could be estimated (fewer than 3 matches, or degenerate
+            ones); the identity was used.
+        seconds: wall time of Sinkhorn, matching, the candidates and verification for this
+            pair (network excluded).
+        flagged: the runtime's success flag (``RegistrationResult.success``).
+        confidence: its calibrated confidence.
+        estimator: the estimator whose pose was kept ("none" without a pose).
     """
 
     protocol: str
@@ -127,6 +138,9 @@ class PairResult:
     match_count: int
     pose_failed: bool
     seconds: float
+    flagged: bool = False
+    confidence: float = 0.0
+    estimator: str = "fsr"
 
     @property
     def rotation_error_deg(self) -> float:
@@ -164,51 +178,62 @@ class PairResult:
 
 
 # ----------------------------------------------------------------------------- per pair
-def register_from_log_assignment(
-    log_assignment: np.ndarray,
-    source_network: np.ndarray,
-    target_network: np.ndarray,
-    match_threshold: float = 0.0,
-    fsr_config: FsrConfig = FsrConfig(),
-) -> tuple[np.ndarray, Matches, bool]:
-    """Mutual matches of a log-assignment and the FSR pose, both in network units.
+def evaluation_config(
+    matching: MatchingConfig = MatchingConfig(),
+    estimator: str = "auto",
+    verification: VerificationConfig = VerificationConfig(),
+) -> RuntimeConfig:
+    """The runtime configuration pairs are evaluated with: ``register()``'s defaults (no ICP),
+    the checkpoint's matching and ``estimator``. ``verification`` defaults to the bundled
+    model's calibration (a checkpoint has none of its own until ``calibrate_success.py`` fits
+    one), so the flag's figures of an uncalibrated checkpoint are indicative only."""
+    if estimator not in POSE_ESTIMATORS:
+        raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")
+    return RuntimeConfig(estimator=estimator, matching=matching, verification=verification)
+
+
+def register_scored_batch(scores: np.ndarray, batch: dict, dustbin_score: float, config: RuntimeConfig):
+    """Register every pair of a collated batch from its network scores, through the runtime's
+    path (:func:`logdesc_rt.pair.pair_from_scores`, then
+    :func:`logdesc_rt.pose_selection.register_matched`).
 
     Args:
-        log_assignment: (N+1, M+1) Sinkhorn output (dustbin last).
-        source_network: (N, 3) network-frame source points.
-        target_network: (M, 3) network-frame target points.
-        match_threshold: keep mutual matches with probability above this.
-        fsr_config: FSR parameters (its tau is in network units).
+        scores: (B, N, M) matching scores of the batch's pairs.
+        batch: the collated samples (:class:`training.data.PairDataset`): their user-frame
+            clouds and normalisation.
+        dustbin_score: the model's learned dustbin score.
+        config: :func:`evaluation_config`.
 
-    Returns:
-        (T (4, 4) network-frame pose, the matches, failed). ``failed`` is True when FSR
-        could not produce a pose (fewer than 3 matches, degenerate matched points); T is then
-        the identity.
+    Yields:
+        (row, :class:`~logdesc_rt.results.RegistrationResult`, seconds) per pair, in batch order.
     """
-    matches = mutual_matches(log_assignment, match_threshold)
-    return register_from_matches(matches, source_network, target_network, fsr_config)
-
-
-def register_from_matches(
-    matches: Matches,
-    source_network: np.ndarray,
-    target_network: np.ndarray,
-    fsr_config: FsrConfig = FsrConfig(),
-) -> tuple[np.ndarray, Matches, bool]:
-    """The FSR pose of mutual matches in network units: (T (4, 4), the matches, failed)."""
-    if len(matches) < MIN_MATCHES:
-        return np.eye(4), matches, True
-    try:  # the runtime's estimator step (what PairMatches.pose("fsr") runs)
-        pose = estimate_pose(
-            "fsr",
-            source_network[matches.source_index],
-            target_network[matches.target_index],
-            matches.confidence,
-            fsr_config,
+    for row in range(scores.shape[0]):
+        start = time.perf_counter()
+        normalization = PairNormalization(
+            source_centre=_as_numpy(batch["source_centre"][row]),
+            target_centre=_as_numpy(batch["target_centre"][row]),
+            scale=float(batch["scale"][row]),
         )
-    except InvalidPointCloudError:  # TooFewPoints / Degenerate: no pose is defined
-        return np.eye(4), matches, True
-    return pose, matches, False
+        pair = pair_from_scores(
+            _as_numpy(batch["source_user"][row]), _as_numpy(batch["target_user"][row]), normalization,
+            _as_numpy(scores[row]), dustbin_score, config,
+        )
+        result: RegistrationResult = register_matched(pair, config)
+        yield row, result, time.perf_counter() - start
+
+
+def _as_numpy(value) -> np.ndarray:
+    """float64 NumPy copy of an array or a (CPU or CUDA) torch tensor."""
+    if hasattr(value, "detach"):
+        value = value.detach().float().cpu().numpy()
+    return np.asarray(value, dtype=np.float64)
+
+
+def matched_source_array(result: RegistrationResult, count: int) -> np.ndarray:
+    """(count,) int64 target index per source point from a result's correspondences, -1 unmatched."""
+    pred = np.full(count, -1, dtype=np.int64)
+    pred[result.correspondences[:, 0]] = result.correspondences[:, 1]
+    return pred
 
 
 # ----------------------------------------------------------------------------- test pairs
@@ -244,13 +269,16 @@ def validation_dataset(
 ) -> PairDataset:
     """The checkpoint's held-out validation shapes as a :class:`PairDataset`.
 
-    The split is re-carved from the training sources with the checkpoint's own
-    ``--val-fraction`` and ``--seed`` (:func:`training.data.split_training_shapes`), so it is the
-    set the run validated on; the pairs are drawn with ``seed`` like the test pairs.
+    The split is re-carved from the training sources with the checkpoint's own ``--split``,
+    ``--val-fraction`` and ``--seed`` (:func:`training.data.run_split`), so it is the set the
+    run validated on; the pairs are drawn with ``seed`` like the test pairs.
     """
     train_args = checkpoint.get("train_args") or {}
-    shapes = split_training_shapes(
-        load_training_sources(data_root), float(train_args.get("val_fraction", 0.05)), int(train_args.get("seed", 0))
+    shapes = run_split(
+        load_training_sources(data_root),
+        str(train_args.get("split", "v3")),
+        float(train_args.get("val_fraction", DEFAULT_VAL_FRACTION)),
+        int(train_args.get("seed", 0)),
     )
     return PairDataset(
         shapes.val, seed, geometry_config, normalization_config, name="val", any_orientation=any_orientation,
@@ -272,24 +300,24 @@ def evaluate_model(
     device="cpu",
     batch_size: int = 8,
     workers: int = 0,
-    sinkhorn_iterations: int | None = None,
-    match_threshold: float = MatchingConfig().match_threshold,
-    fsr_config: FsrConfig = FsrConfig(),
+    config: RuntimeConfig | None = None,
     amp: bool = False,
     progress: bool = True,
 ) -> list[PairResult]:
-    """Run the network on the pairs of ``keys`` and register each with the runtime's steps.
+    """Run the network on the pairs of ``keys`` and register each through the runtime's path.
 
     The network gives the (B, N, M) scores (descriptor + transformer, no torch Sinkhorn); the
-    assignment, the matches and the pose are computed in NumPy, exactly as the deployed
-    runtime does (:func:`logdesc_rt.matching.sinkhorn_matches` with the model's learned dustbin).
+    matches, the candidate poses, the verified pose and the flag are the runtime's
+    (:func:`register_scored_batch`), with ``config`` (default: :func:`evaluation_config` of
+    the model's Sinkhorn iterations).
     """
     import torch
     from torch.utils.data import DataLoader
     from tqdm import tqdm
 
     device = torch.device(device)
-    iterations = int(sinkhorn_iterations or model.config.sinkhorn_iterations)
+    if config is None:
+        config = evaluation_config(MatchingConfig(sinkhorn_iterations=int(model.config.sinkhorn_iterations)))
     dustbin = float(model.dustbin_score.detach().cpu())
     loader = DataLoader(
         dataset,
@@ -302,32 +330,25 @@ def evaluate_model(
     with tqdm(total=len(keys), desc="evaluate", unit="pair", disable=not progress, dynamic_ncols=True) as bar:
         for batch in loader:
             scores = network_scores(model, batch, device, amp)
-            for row in range(scores.shape[0]):
-                start = time.perf_counter()
-                # The runtime's own reader of the Sinkhorn assignment (float32, as deployed).
-                matches = sinkhorn_matches(scores[row], dustbin, iterations, match_threshold)
-                source_net = batch["src_points"][row].numpy().astype(np.float64)
-                target_net = batch["tgt_points"][row].numpy().astype(np.float64)
-                pose_net, matches, failed = register_from_matches(matches, source_net, target_net, fsr_config)
-                normalization = PairNormalization(
-                    source_centre=batch["source_centre"][row].numpy(),
-                    target_centre=batch["target_centre"][row].numpy(),
-                    scale=float(batch["scale"][row]),
-                )
+            for row, result, seconds in register_scored_batch(scores, batch, dustbin, config):
+                source = batch["source_user"][row].numpy()
                 results.append(
                     PairResult(
                         protocol=batch["protocol"][row],
                         index=int(batch["index"][row]),
-                        T_pred=normalization.pose_to_user_frame(pose_net),
+                        T_pred=result.transformation,
                         T_gt=batch["T_gt_user"][row].numpy(),
-                        source=batch["source_user"][row].numpy(),
+                        source=source,
                         target=batch["target_user"][row].numpy(),
                         scale=float(batch["scale"][row]),
-                        pred_match=matches_as_array(matches, len(source_net)),
+                        pred_match=matched_source_array(result, len(source)),
                         gt_match=batch["gt_match_src"][row].numpy(),
-                        match_count=len(matches),
-                        pose_failed=failed,
-                        seconds=time.perf_counter() - start,
+                        match_count=len(result.correspondences),
+                        pose_failed=result.pose_estimator == "none",
+                        seconds=seconds,
+                        flagged=result.success,
+                        confidence=result.confidence,
+                        estimator=result.pose_estimator,
                     )
                 )
                 bar.update(1)
@@ -361,8 +382,10 @@ def summarize(results: list[PairResult]) -> dict[str, dict[str, float]]:
     Registration metrics follow :func:`logdesc_rt.metrics.registration_metrics` (user frame);
     matching P/A/R are averaged over pairs with ``nanmean`` (a pair without predicted matches
     has no precision). Extra keys: ``l_r_median``, ``pose_failures``, ``matches_mean``,
-    ``pairs``, ``seconds_per_pair`` (NumPy part only), ``rotation_under_5deg`` and one
-    ``failed_<kind>`` count per :data:`FAILURE_KINDS` (spaces as underscores).
+    ``pairs``, ``seconds_per_pair`` (NumPy part only), ``rotation_under_5deg``, one
+    ``failed_<kind>`` count per :data:`FAILURE_KINDS` (spaces as underscores), and the success
+    flag's ``flagged`` share, ``flag_precision`` (flagged pairs with L_R < 5 degrees; NaN when
+    none is flagged) and ``flag_recall``.
     """
     protocols = list(dict.fromkeys(result.protocol for result in results))
     groups = {protocol: [r for r in results if r.protocol == protocol] for protocol in protocols}
@@ -385,6 +408,11 @@ def summarize(results: list[PairResult]) -> dict[str, dict[str, float]]:
             metrics[f"failed_{kind.replace(' ', '_')}"] = int(sum(f == kind for f in failures))
         metrics["matches_mean"] = float(np.mean([r.match_count for r in group]))
         metrics["seconds_per_pair"] = float(np.mean([r.seconds for r in group]))
+        right = np.array([kind is None for kind in failures])
+        flagged = np.array([r.flagged for r in group])
+        metrics["flagged"] = float(np.mean(flagged))
+        metrics["flag_precision"] = float(np.mean(right[flagged])) if flagged.any() else float("nan")
+        metrics["flag_recall"] = float(np.mean(flagged[right])) if right.any() else float("nan")
         metrics["pairs"] = len(group)
         summary[protocol] = metrics
     return summary
@@ -408,6 +436,9 @@ _COLUMNS = [
     ("near miss", "failed_near_miss", "{:d}"),
     ("symmetric", "failed_symmetric", "{:d}"),
     ("wrong", "failed_wrong", "{:d}"),
+    ("flagged %", "flagged", "{:.1f}"),
+    ("flag P %", "flag_precision", "{:.1f}"),
+    ("flag R %", "flag_recall", "{:.1f}"),
     ("pairs", "pairs", "{:d}"),
 ]
 
@@ -424,7 +455,8 @@ def format_markdown(summary: dict, meta: dict | None = None) -> str:
         cells = []
         for _, key, fmt in _COLUMNS:
             value = metrics.get(key, float("nan"))
-            if key in ("precision", "accuracy", "recall", "rotation_under_5deg"):
+            if key in ("precision", "accuracy", "recall", "rotation_under_5deg", "flagged", "flag_precision",
+                       "flag_recall"):
                 value = 100.0 * value
             if isinstance(value, float) and not math.isfinite(value):
                 cells.append("n/a")
@@ -447,7 +479,7 @@ def evaluate_checkpoint(
     amp: bool = False,
     sinkhorn_iterations: int | None = None,
     match_threshold: float = MatchingConfig().match_threshold,
-    fsr_config: FsrConfig = FsrConfig(),
+    estimator: str = "auto",
     progress: bool = True,
     any_orientation: bool = False,
     split: str = "test",
@@ -469,11 +501,14 @@ def evaluate_checkpoint(
         dataset = modelnet10_test_dataset(data_root, seed, geometry_config, normalization_config, any_orientation,
                                           any_relative_rotation=any_relative_rotation)
     keys = evaluation_keys(len(dataset), protocols, pairs)
+    matching = MatchingConfig(
+        sinkhorn_iterations=int(sinkhorn_iterations or model.config.sinkhorn_iterations), match_threshold=match_threshold
+    )
+    config = evaluation_config(matching, estimator)
     start = time.perf_counter()
     results = evaluate_model(
-        model, dataset, keys, device=device, batch_size=batch_size, workers=workers,
-        sinkhorn_iterations=sinkhorn_iterations, match_threshold=match_threshold,
-        fsr_config=fsr_config, amp=amp, progress=progress,
+        model, dataset, keys, device=device, batch_size=batch_size, workers=workers, config=config, amp=amp,
+        progress=progress,
     )
     meta = {
         "checkpoint": str(checkpoint_path),
@@ -484,8 +519,8 @@ def evaluate_checkpoint(
         "any_orientation": any_orientation,
         "any_relative_rotation": any_relative_rotation,
         "pairs_per_protocol": len(keys) // max(1, len(protocols)),
-        "sinkhorn_iterations": int(sinkhorn_iterations or model.config.sinkhorn_iterations),
-        "match_threshold": match_threshold,
+        "matching": matching.to_dict(),
+        "estimator": estimator,
         "wall_time_s": round(time.perf_counter() - start, 1),
     }
     return summarize(results), results, meta
@@ -518,6 +553,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--sinkhorn-iterations", type=int, default=None,
                         help="default: the model config's value")
     parser.add_argument("--match-threshold", type=float, default=MatchingConfig().match_threshold)
+    parser.add_argument("--estimator", default="auto", choices=POSE_ESTIMATORS,
+                        help="the pose register() returns (auto: every candidate verified, the best kept; "
+                             "fsr: the paper's estimator's pose)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--any-orientation", action="store_true",
                         help="turn both clouds of every pair by a random rotation (same pairs otherwise)")
@@ -543,7 +581,7 @@ def main(argv=None) -> int:
     summary, _, meta = evaluate_checkpoint(
         args.checkpoint, data_root=args.data_root, protocols=args.protocols, pairs=args.pairs,
         seed=args.seed, device=device, batch_size=args.batch_size, workers=workers, amp=args.amp,
-        sinkhorn_iterations=args.sinkhorn_iterations, match_threshold=args.match_threshold,
+        sinkhorn_iterations=args.sinkhorn_iterations, match_threshold=args.match_threshold, estimator=args.estimator,
         progress=not args.no_progress, any_orientation=args.any_orientation, split=args.split,
         any_relative_rotation=args.any_relative_rotation,
     )

@@ -1,4 +1,4 @@
-"""Building blocks both LoGDesc networks share (the paper's, training/model.py, and v3's,
+"""Building blocks both LoGDesc networks share (the paper's, training/paper_model.py, and v3's,
 training/invariant_model.py): the per-edge 1x1 convolutions and the head reshapes."""
 
 from __future__ import annotations

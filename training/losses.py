@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from logdesc_rt.metrics import IGNORED
 
-__all__ = ["assignment_nll", "descriptor_infonce", "gap_loss", "invert_matches"]
+__all__ = ["assignment_nll", "descriptor_infonce", "invert_matches"]
 
 
 def invert_matches(gt_match_src: torch.Tensor, target_count: int) -> torch.Tensor:
@@ -65,55 +65,6 @@ def assignment_nll(
     total = (source_terms * labelled_src).sum(dim=1) + target_terms.sum(dim=1)
     count = (labelled_src.sum(dim=1) + unmatched_tgt.sum(dim=1)).clamp(min=1.0)
     return (-total / count).mean()
-
-
-def _labelled_mean(terms: torch.Tensor, gt_match: torch.Tensor) -> torch.Tensor:
-    """(B,) mean of (B, N) per-point terms over the points that are not ``IGNORED``."""
-    labelled = (gt_match != IGNORED).to(terms.dtype)
-    return (terms * labelled).sum(dim=1) / labelled.sum(dim=1).clamp(min=1.0)
-
-
-def gap_loss(
-    log_assignment: torch.Tensor,
-    gt_match_src: torch.Tensor,
-    gt_match_tgt: torch.Tensor,
-    margin: float = 0.5,
-) -> torch.Tensor:
-    """MDGAT's gap loss on the Sinkhorn output.
-
-    For every source row i (target = gt(i), or the dustbin column when unmatched):
-        row_i = 2 log(1 + sum_{k != gt(i)} max(0, logP[i, k] - logP[i, gt(i)] + margin)),
-    k over all M + 1 columns; likewise for every target column j over all N + 1 rows. The loss
-    of a pair is (mean_i row_i + mean_j col_j) / 2 over labelled points (ignored ones add no
-    term), averaged over the batch. It pushes every wrong candidate at least ``margin`` (in
-    log-probability) below the right one.
-
-    Args:
-        log_assignment: (B, N + 1, M + 1).
-        gt_match_src: (B, N) int64 in [-2, M).
-        gt_match_tgt: (B, M) int64 in [-2, N).
-        margin: hinge margin (0.5 in MDGAT and the official LoGDesc code).
-
-    Returns:
-        Scalar loss.
-    """
-    rows, cols = log_assignment.shape[1] - 1, log_assignment.shape[2] - 1
-
-    source_rows = log_assignment[:, :rows, :]  # (B, N, M + 1)
-    columns = _target_columns(gt_match_src, cols)
-    positive = torch.gather(source_rows, 2, columns.unsqueeze(2))
-    hinge = F.relu(source_rows - positive + margin)
-    hinge = hinge.masked_fill(F.one_hot(columns, cols + 1).bool(), 0.0)
-    row_loss = _labelled_mean(2.0 * torch.log1p(hinge.sum(dim=2)), gt_match_src)
-
-    target_cols = log_assignment[:, :, :cols]  # (B, N + 1, M)
-    sources = _target_columns(gt_match_tgt, rows)
-    positive = torch.gather(target_cols, 1, sources.unsqueeze(1))
-    hinge = F.relu(target_cols - positive + margin)
-    hinge = hinge.masked_fill(F.one_hot(sources, rows + 1).transpose(1, 2).bool(), 0.0)
-    col_loss = _labelled_mean(2.0 * torch.log1p(hinge.sum(dim=1)), gt_match_tgt)
-
-    return (0.5 * (row_loss + col_loss)).mean()
 
 
 def descriptor_infonce(

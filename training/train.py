@@ -9,17 +9,18 @@ Usage (from the repository root; ``python training/train.py ...`` works too)::
 Data: ModelNet10 train + the ModelNet40 subset (train), 5 % of each held out by shape name as a
 fixed validation set (:mod:`training.data`); ModelNet10's test split is never read here.
 Loss: the negative log-likelihood of the ground-truth assignment in the Sinkhorn output
-(:func:`training.losses.assignment_nll`), optionally plus ``--gap-loss-weight`` x MDGAT's gap
-loss and ``--aux-descriptor-loss-weight`` x an InfoNCE loss on the pre-transformer descriptors.
-Optimiser: Adam, linear warm-up, then cosine (to ``--min-lr-ratio`` x lr at ``--decay-steps``,
-default ``--max-steps``) or step decay.
+(:func:`training.losses.assignment_nll`) plus ``--aux-descriptor-loss-weight`` x an InfoNCE
+loss on the pre-transformer descriptors. Optimiser: Adam, linear warm-up, then cosine (to
+``--min-lr-ratio`` x lr at ``--decay-steps``, default ``--max-steps``; ``--cycle-start`` starts
+a warm restart) or constant.
 
 Outputs in ``--out``:
 
 - ``log.jsonl``: one JSON object a line: ``{"type": "train", ...}`` per logged step (loss
   terms, lr, grad norm, timing), ``{"type": "val", ...}`` per validation (val loss, matching
-  precision / accuracy / recall of mutual matches, FSR rotation error L_R median / mean, per
-  protocol too), plus ``start`` / ``resume`` / ``checkpoint`` / ``stop`` events. Every line has
+  precision / accuracy / recall of mutual matches, and the rotation error L_R median / mean /
+  share under 5 degrees and the success flag of the pose ``register()`` returns, through the
+  runtime's own path; per protocol too), plus ``start`` / ``resume`` / ``checkpoint`` / ``stop`` events. Every line has
   ``step``, ``epoch``, ``pairs_seen`` and ``wall_time_s`` (training wall time accumulated over
   all sessions).
 - ``last.pt`` every ``--checkpoint-minutes`` and at exit (also on SIGTERM / SIGINT), ``best.pt``
@@ -57,13 +58,12 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig
-from logdesc_rt.matching import matches_as_array
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, rotation_error_deg
-from logdesc_rt.pose import FsrConfig
 from training.checkpoint import is_weights_only
 from training.config import PRESETS, ModelConfig
 from training.data import (
     DEFAULT_DATA_ROOT,
+    DEFAULT_VAL_FRACTION,
     PROTOCOLS,
     SCAN_PROTOCOL,
     SOURCE_POINTS,
@@ -74,12 +74,12 @@ from training.data import (
     load_dense_shapes,
     load_training_sources,
     parse_protocol_mix,
-    split_train_val_test,
-    split_training_shapes,
+    SPLITS,
+    run_split,
     validation_keys,
 )
-from training.evaluate import register_from_log_assignment
-from training.losses import assignment_nll, descriptor_infonce, gap_loss
+from training.evaluate import evaluation_config, matched_source_array, register_scored_batch
+from training.losses import assignment_nll, descriptor_infonce
 from training.model import LoGDescMatcher
 from training.geometry_torch import invariant_geometry
 from training.sinkhorn import log_optimal_transport
@@ -93,6 +93,7 @@ BEST_METRICS = {
     "val_rot_mean_deg": False,
     "val_recall": True,
     "val_precision": True,
+    "val_rot_under_5deg": True,
 }
 INPUT_NAMES = ("src_edges", "src_points", "src_normals", "tgt_edges", "tgt_points", "tgt_normals")
 
@@ -119,7 +120,6 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--amp", action="store_true",
                      help="bf16 autocast for the network on CUDA (Sinkhorn and losses stay float32)")
     run.add_argument("--no-tf32", action="store_true", help="keep float32 matmuls exact on CUDA")
-    run.add_argument("--compile", action="store_true", help="torch.compile the model (CUDA)")
     run.add_argument("--workers", type=int, default=None,
                      help="DataLoader workers (default: 2 on CPU, min(12, cores-2) on CUDA)")
     run.add_argument("--threads", type=int, default=None, help="torch.set_num_threads in the main process")
@@ -139,18 +139,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Adam learning rate (default: 1e-4 paper, 1e-3 small/tiny)")
     optim.add_argument("--weight-decay", type=float, default=0.0)
     optim.add_argument("--warmup-steps", type=int, default=200, help="linear warm-up from 1%% of lr")
-    optim.add_argument("--schedule", default="cosine", choices=["cosine", "step", "constant"])
+    optim.add_argument("--schedule", default="cosine", choices=["cosine", "constant"])
     optim.add_argument("--decay-steps", type=int, default=None,
                        help="cosine horizon in steps (default --max-steps; constant if neither)")
     optim.add_argument("--min-lr-ratio", type=float, default=0.05, help="cosine floor, x lr")
     optim.add_argument("--cycle-start", type=int, default=0,
                        help="optimiser step where the schedule starts over (a warm restart of a finished "
                             "run): warm-up and decay count from it, --decay-steps is the cycle's length")
-    optim.add_argument("--step-size", type=int, default=10000, help="step decay: every N steps")
-    optim.add_argument("--gamma", type=float, default=0.5, help="step decay factor")
     optim.add_argument("--grad-clip", type=float, default=1.0, help="max grad norm (0 = off)")
-    optim.add_argument("--gap-loss-weight", type=float, default=0.0)
-    optim.add_argument("--gap-margin", type=float, default=0.5)
     optim.add_argument("--aux-descriptor-loss-weight", type=float, default=0.1,
                        help="weight of InfoNCE on the pre-transformer descriptors")
     optim.add_argument("--infonce-temperature", type=float, default=0.1)
@@ -165,29 +161,20 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--val-protocol-mix", default=None,
                       help="the validation pairs' protocols (default --protocol-mix); keep a resumed run's "
                            "validation set when its training mix changes")
-    data.add_argument("--curriculum-steps", type=int, default=0,
-                      help="move from --curriculum-start-mix to --protocol-mix over N steps (0 = off)")
-    data.add_argument("--curriculum-start-mix", default="clean:1")
     data.add_argument("--points-per-cloud", type=int, default=SOURCE_POINTS,
                       help="source points per pair (1024 = paper; partial keeps 75%%)")
     data.add_argument("--scan-points-per-cloud", type=int, default=None,
                       help="points per cloud of 'scan' pairs (default --points-per-cloud)")
-    data.add_argument("--split", default="v3", choices=["v3", "three-way"],
+    data.add_argument("--split", default="v3", choices=SPLITS,
                       help="v3: 5 %% of each source held out for validation (seed --seed); three-way (v4): v3's "
                            "validation shapes become the test shapes, never read here, and validation is a fresh "
                            "5 %% of the rest (training.data.split_train_val_test)")
-    data.add_argument("--early-points-per-cloud", type=int, default=None,
-                      help="fewer points for the first --early-points-steps steps (speed)")
-    data.add_argument("--early-points-steps", type=int, default=0)
     data.add_argument("--any-orientation", action="store_true",
                       help="turn both clouds of every training and validation pair by a random rotation "
                            "(the paper's pairs keep the source upright; users' scans are not)")
-    data.add_argument("--val-fraction", type=float, default=0.05, help="of each training source")
+    data.add_argument("--val-fraction", type=float, default=DEFAULT_VAL_FRACTION, help="of each training source")
     data.add_argument("--val-every", type=int, default=500, help="validate every N steps (0 = never)")
     data.add_argument("--val-pairs", type=int, default=128)
-    data.add_argument("--val-batch-size", type=int, default=None, help="default --batch-size")
-    data.add_argument("--val-points-per-cloud", type=int, default=None,
-                      help="default --points-per-cloud")
     data.add_argument("--best-metric", default="val_loss", choices=sorted(BEST_METRICS))
     return parser
 
@@ -222,8 +209,6 @@ def lr_factor(step: int, args) -> float:
     step = max(0, step - cycle_start)
     if args.warmup_steps > 0 and step < args.warmup_steps:
         return 0.01 + 0.99 * step / args.warmup_steps
-    if args.schedule == "step":
-        return args.gamma ** ((step - args.warmup_steps) // max(1, args.step_size))
     horizon = args.decay_steps or (args.max_steps - cycle_start if args.max_steps else None)
     if args.schedule == "constant" or not horizon:
         return 1.0
@@ -284,9 +269,6 @@ def loss_terms(outputs: dict, batch: dict, args) -> dict[str, torch.Tensor]:
     gt_src, gt_tgt = batch["gt_match_src"], batch["gt_match_tgt"]
     terms = {"nll": assignment_nll(log_assignment, gt_src, gt_tgt)}
     loss = terms["nll"]
-    if args.gap_loss_weight > 0:
-        terms["gap"] = gap_loss(log_assignment, gt_src, gt_tgt, margin=args.gap_margin)
-        loss = loss + args.gap_loss_weight * terms["gap"]
     if args.aux_descriptor_loss_weight > 0:
         terms["infonce"] = descriptor_infonce(
             outputs["descriptors_src"].float(), outputs["descriptors_tgt"].float(), gt_src,
@@ -417,13 +399,17 @@ def truncate_log(path: Path, step: int) -> None:
 
 # ----------------------------------------------------------------------------- validation
 def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConfig | None = None) -> dict | None:
-    """Validation loss, mutual-match P/A/R and FSR rotation error on the fixed pairs.
+    """Validation loss, mutual-match P/A/R and the rotation error of the pose ``register()``
+    would return (the runtime's path: :func:`training.evaluate.register_scored_batch`, no ICP)
+    on the fixed pairs.
 
     Returns None if a stop signal arrived mid-way (the result would be partial).
     """
     model.eval()
     losses, per_pair = [], []
     start = time.perf_counter()
+    config = evaluation_config(MatchingConfig(sinkhorn_iterations=int(model.config.sinkhorn_iterations)))
+    dustbin = float(model.dustbin_score.detach().cpu())
     with torch.no_grad():
         for batch in loader:
             if stop:
@@ -434,23 +420,17 @@ def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConf
             log_assignment = outputs["log_assignment"].float()
             count = log_assignment.shape[0]
             losses.append((assignment_nll(log_assignment, batch["gt_match_src"], batch["gt_match_tgt"]).item(), count))
-            log_assignment = log_assignment.cpu().numpy().astype(np.float64)
             gt_src = batch["gt_match_src"].cpu().numpy()
-            src_points = batch["src_points"].cpu().numpy().astype(np.float64)
-            tgt_points = batch["tgt_points"].cpu().numpy().astype(np.float64)
-            poses_gt = batch["T_gt"].cpu().numpy().astype(np.float64)
-            for row in range(count):
-                pose, matches, failed = register_from_log_assignment(
-                    log_assignment[row], src_points[row], tgt_points[row],
-                    MatchingConfig().match_threshold, FsrConfig(),
-                )
-                scores = matching_metrics(matches_as_array(matches, len(gt_src[row])), gt_src[row])
+            for row, result, _ in register_scored_batch(outputs["scores"].float().cpu().numpy(), batch, dustbin, config):
+                predicted = matched_source_array(result, len(gt_src[row]))
+                true_pose = batch["T_gt_user"][row].cpu().numpy()
                 per_pair.append({
                     "protocol": batch["protocol"][row],
-                    "rot": float(rotation_error_deg(pose[:3, :3], poses_gt[row, :3, :3])),
-                    "matches": len(matches),
-                    "failed": failed,
-                    **scores,
+                    "rot": float(rotation_error_deg(result.transformation[:3, :3], true_pose[:3, :3])),
+                    "matches": len(result.correspondences),
+                    "failed": result.pose_estimator == "none",
+                    "flagged": result.success,
+                    **matching_metrics(predicted, gt_src[row]),
                 })
     model.train()
     total = sum(count for _, count in losses)
@@ -461,7 +441,12 @@ def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConf
             f"{prefix}rot_median_deg": float(np.median(rot)),
             f"{prefix}rot_mean_deg": float(np.mean(rot)),
             f"{prefix}rot_under_5deg": float(np.mean(rot < SUCCESS_ROTATION_DEG)),
+            f"{prefix}flagged": float(np.mean([r["flagged"] for r in rows])),
         }
+        flagged = np.array([r["flagged"] for r in rows])
+        result[f"{prefix}flag_precision"] = (
+            float(np.mean(rot[flagged] < SUCCESS_ROTATION_DEG)) if flagged.any() else float("nan")
+        )
         for name in ("precision", "accuracy", "recall"):
             values = np.array([r[name] for r in rows], dtype=np.float64)
             result[f"{prefix}{name}"] = float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
@@ -526,7 +511,6 @@ class TrainingRun:
     device: torch.device
     amp: bool
     model: LoGDescMatcher
-    step_model: torch.nn.Module  # ``model``, compiled with --compile
     optimizer: torch.optim.Optimizer
     scheduler: torch.optim.lr_scheduler.LambdaLR
     progress: Progress
@@ -578,7 +562,7 @@ class TrainingRun:
         """
         compute_start = time.perf_counter()
         batch = to_device(batch, self.device, self.geometry)
-        terms = loss_terms(forward(self.step_model, batch, self.amp), batch, self.args)
+        terms = loss_terms(forward(self.model, batch, self.amp), batch, self.args)
         self.optimizer.zero_grad(set_to_none=True)
         grad_norm, skipped = float("nan"), True
         if torch.isfinite(terms["loss"]):
@@ -610,7 +594,7 @@ class TrainingRun:
         """Validate on the fixed pairs, log the result and keep ``best.pt`` if it improved."""
         if self.val_loader is None:
             return
-        result = validate(self.step_model, self.val_loader, self.device, self.args, stop, self.geometry)
+        result = validate(self.model, self.val_loader, self.device, self.args, stop, self.geometry)
         if result is None:  # a stop signal arrived mid-way
             return
         progress, value = self.progress, result[self.args.best_metric]
@@ -677,7 +661,7 @@ def start_run(args) -> TrainingRun:
         truncate_log(log_path, progress.step)
     run = TrainingRun(
         args=args, device=device, amp=bool(args.amp and device.type == "cuda"), model=model,
-        step_model=torch.compile(model) if args.compile else model, optimizer=optimizer, scheduler=scheduler,
+        optimizer=optimizer, scheduler=scheduler,
         progress=progress, geometry=geometry, train_loader=train_loader, val_loader=val_loader,
         batches_per_epoch=batches_per_epoch, log=JsonlLog(log_path), resumed_from=resume_path,
     )
@@ -753,10 +737,7 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
     """(train loader, validation loader or None, batches per epoch): ModelNet10 train + the
     ModelNet40 subset, the validation split carved by shape name (:mod:`training.data`)."""
     sources = load_training_sources(args.data_root)
-    if args.split == "three-way":
-        shapes = split_train_val_test(sources, args.val_fraction, args.seed).shapes
-    else:
-        shapes = split_training_shapes(sources, args.val_fraction, args.seed)
+    shapes = run_split(sources, args.split, args.val_fraction, args.seed)
     mix = parse_protocol_mix(args.protocol_mix)
     val_mix = parse_protocol_mix(args.val_protocol_mix) if args.val_protocol_mix else mix
     dense = {"train": None, "val": None}
@@ -764,13 +745,7 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
         all_dense = load_dense_shapes(args.data_root)
         dense = {"train": all_dense.subset(shapes.train_names), "val": all_dense.subset(shapes.val_names)}
     schedule = ProtocolSchedule(
-        mix=mix,
-        start_mix=parse_protocol_mix(args.curriculum_start_mix) if args.curriculum_steps > 0 else None,
-        curriculum_steps=args.curriculum_steps,
-        points_per_cloud=args.points_per_cloud,
-        early_points_per_cloud=args.early_points_per_cloud,
-        early_steps=args.early_points_steps,
-        scan_points_per_cloud=args.scan_points_per_cloud,
+        mix=mix, points_per_cloud=args.points_per_cloud, scan_points_per_cloud=args.scan_points_per_cloud,
     )
     datasets = {
         name: PairDataset(
@@ -790,11 +765,11 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
     val_loader = None
     if args.val_every > 0 and args.val_pairs > 0:
         keys = validation_keys(
-            len(datasets["val"]), args.val_pairs, val_mix, args.seed, args.val_points_per_cloud or args.points_per_cloud,
+            len(datasets["val"]), args.val_pairs, val_mix, args.seed, args.points_per_cloud,
             args.scan_points_per_cloud,
         )
         val_loader = DataLoader(
-            datasets["val"], batch_sampler=fixed_pair_batches(keys, args.val_batch_size or args.batch_size), **options,
+            datasets["val"], batch_sampler=fixed_pair_batches(keys, args.batch_size), **options,
         )
     return train_loader, val_loader, sampler.batches_per_epoch
 
@@ -817,7 +792,7 @@ def train(args) -> int:
         total=args.max_steps, initial=run.progress.step, unit="step", dynamic_ncols=True,
         disable=args.no_progress, desc=f"train {args.preset}",
     )
-    run.step_model.train()
+    run.model.train()
     try:
         batches = iter(run.train_loader)
         while (stopping := run.reason_to_stop(stop)) is None:

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import DEFAULT_WORKING_SIZE  # noqa: F401 (re-exported by logdesc_rt.io)
 from ..errors import PointCloudFileError
 from ..validation import as_points
 from ._common import check_readable_file, file_error
@@ -39,9 +40,6 @@ FACE_SUFFIXES: tuple[str, ...] = (".ply", ".off")
 """Point-cloud suffixes that may carry faces."""
 MESH_WRITE_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".stl", ".off", ".glb")
 """Suffixes :meth:`Mesh.write` writes (vertices and triangles)."""
-DEFAULT_WORKING_SIZE = 1024
-"""The bundled model's working size (points per cloud its networks see), for the vertex check when
-the caller has no model at hand (the CLI reads its inputs before loading one)."""
 DEFAULT_SURFACE_SAMPLES = 5000
 """Points sampled on a mesh's surface by default: about 5x the working size (1024), so the
 working subset's farthest-point sampling picks from an even, dense cover (the paper's femur

@@ -1,0 +1,97 @@
+"""Candidate poses from learned matches: one function per estimator name.
+
+The candidate estimators (network units, from the mutual matches and their Sinkhorn
+confidences):
+
+- ``fsr``: the paper's estimator (:func:`~logdesc_rt.pose.fsr`);
+- ``ransac``: 3-point RANSAC (:func:`~logdesc_rt.pose.ransac`);
+- ``svd``: confidence-weighted SVD on every match (outliers included);
+- ``top_k``: SVD on the most confident ``top_k_fraction`` of the matches, then re-solved on
+  its inliers;
+- ``core``: the maximum consistent core of the matches (:mod:`~logdesc_rt.pose.consistency`:
+  the largest set whose pairwise distances agree in both clouds), SVD on it, re-solved on its
+  inliers; it holds up to about 90 % wrong matches, where FSR breaks at about half.
+
+Verification (:mod:`logdesc_rt.verification`) scores what these propose; which of them run
+is the model's choice (``VerificationConfig.candidates``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import CANDIDATE_ESTIMATORS, VerificationConfig
+from ..errors import DegenerateGeometryError, TooFewPointsError
+from .consistency import consistency_pose
+from .fsr import FsrConfig, fsr
+from .ransac import RansacConfig, ransac
+from .svd import refine_on_inliers, rigid_transform_svd
+
+
+def estimate_pose(
+    estimator: str,
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+) -> np.ndarray:
+    """(4, 4) network-frame pose of one candidate estimator from matched points.
+
+    Args:
+        estimator: one of CANDIDATE_ESTIMATORS (module docstring).
+        source_matched, target_matched: (K, 3) float64 matched points, K >= 3, network units.
+        confidences: (K,) float64 match probabilities.
+        fsr_config, ransac_config: the two robust estimators' parameters (and seeds).
+        top_k_fraction: share of the most confident matches the "top_k" candidate fits.
+
+    Raises:
+        ValueError: unknown estimator.
+        DegenerateGeometryError, TooFewPointsError: the matches do not determine a pose.
+    """
+    if estimator == "fsr":
+        return fsr(source_matched, target_matched, confidences, fsr_config).transformation
+    if estimator == "ransac":
+        return ransac(source_matched, target_matched, ransac_config).transformation
+    if estimator == "svd":
+        return rigid_transform_svd(source_matched, target_matched, confidences)
+    if estimator == "core":
+        return consistency_pose(
+            source_matched, target_matched, confidences, fsr_config.inlier_threshold, fsr_config.refit_rounds
+        )
+    if estimator == "top_k":
+        count = max(3, int(round(top_k_fraction * len(confidences))))
+        chosen = np.argsort(-confidences, kind="stable")[:count]
+        pose = rigid_transform_svd(source_matched[chosen], target_matched[chosen], confidences[chosen])
+        return refine_on_inliers(
+            pose, source_matched, target_matched, confidences, fsr_config.inlier_threshold, fsr_config.refit_rounds
+        )
+    raise ValueError(f"estimator {estimator!r}: expected one of {CANDIDATE_ESTIMATORS}")
+
+
+def candidate_poses(
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+    estimators: tuple[str, ...] = VerificationConfig.candidates,
+) -> list[tuple[str, np.ndarray]]:
+    """The poses of ``estimators`` (:func:`estimate_pose`), network units.
+
+    Returns:
+        [(estimator name, (4, 4) network-frame pose)], in ``estimators`` order, leaving out an
+        estimator whose points are degenerate (all on a line, say).
+    """
+    candidates: list[tuple[str, np.ndarray]] = []
+    for name in estimators:
+        try:
+            pose = estimate_pose(
+                name, source_matched, target_matched, confidences, fsr_config, ransac_config, top_k_fraction
+            )
+        except (DegenerateGeometryError, TooFewPointsError):
+            continue
+        candidates.append((name, pose))
+    return candidates

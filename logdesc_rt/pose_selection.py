@@ -1,0 +1,172 @@
+"""From a matched pair to the returned result: the one path from learned matches to a verified
+pose. The runtime (:meth:`Registrar.register`), training's validation and
+``training/evaluate.py`` all read their poses here.
+
+    mutual matches -> candidate poses (:mod:`logdesc_rt.pose.candidates`, network units, mapped
+    back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
+    few get a short ICP, each is scored, a calibrated confidence) -> the chosen pose -> optional
+    ICP -> fitness / inlier RMSE on the full clouds -> the success flag.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .config import RuntimeConfig
+from .pair import MIN_MATCHES, PairMatches
+from .pose import evaluate_registration
+from .refinement import icp
+from .results import RegistrationResult
+from .timing import timed
+from .verification import PoseVerifier
+
+
+def register_matched(
+    pair: PairMatches,
+    config: RuntimeConfig,
+    initial: np.ndarray | None = None,
+    report: Callable[[str], None] | None = None,
+) -> RegistrationResult:
+    """The result of a matched pair: candidate poses from its matches (and ``initial``),
+    verified on the full clouds, the best (or the configured estimator's) kept, refined if
+    the config asks, judged.
+
+    Args:
+        pair: the matches and the clouds (:meth:`Registrar.match`, or :func:`pair_from_scores`).
+        config: a resolved runtime configuration (estimator, verification, refinement).
+        initial: optional (4, 4) user-frame guess, verified like the candidates.
+        report: optional callable given a short message as each stage starts.
+
+    Returns:
+        :class:`RegistrationResult`; a pair with too few matches or no candidate pose is a
+        result with ``success=False``, the identity and a ``reason``.
+    """
+    report = report if report is not None else (lambda message: None)
+    timings = dict(pair.timings)
+    with timed(timings, "pose"):
+        candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES else []
+        if initial is not None:
+            candidates.append(("init", initial))
+    if len(pair.matches) < MIN_MATCHES and initial is None:
+        return unregistered_result(
+            pair, config, timings,
+            f"too few matches: the network found {len(pair.matches)} mutual matches, a pose needs at least "
+            f"{MIN_MATCHES} (the clouds may not overlap, or differ too much from the model's training data)",
+        )
+    if config.estimator != "auto" and config.estimator not in dict(candidates):
+        return unregistered_result(
+            pair, config, timings,
+            f"no candidate pose: estimator {config.estimator!r} found none (its matches are degenerate: all on one line)",
+        )
+    if not candidates:
+        return unregistered_result(pair, config, timings, "no candidate pose: the matches are degenerate (all on one line)")
+
+    scale = pair.normalization.scale
+    refinement = config.refinement
+    distance = refinement.max_correspondence_distance or refinement.distance_fraction * scale
+    report(
+        f"verifying {len(candidates)} candidate poses on the full clouds "
+        f"({len(pair.source_points)} x {len(pair.target_points)} points)"
+    )
+    with timed(timings, "verification"):
+        correspondences = pair.correspondences
+        verifier = PoseVerifier(
+            pair.source_points,
+            pair.target_points,
+            pair.source_points[correspondences[:, 0]],
+            pair.target_points[correspondences[:, 1]],
+            pair.matches.confidence,
+            scale,
+            config.verification,
+        )
+        verification = verifier.verify(candidates)
+    if config.estimator == "auto":
+        chosen = verification.best
+        chosen_estimator = chosen.estimators[0]
+    else:
+        chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
+        chosen_estimator = config.estimator
+    pose = dict(candidates)[chosen_estimator]
+
+    refined, icp_result = pose, None
+    if refinement.method is not None:
+        report(f"refining: {refinement.method} ICP on the full clouds")
+        with timed(timings, "refinement"):
+            icp_result = icp(
+                pair.source_points,
+                pair.target_points,
+                chosen.verified_transformation,
+                distance,
+                method=refinement.method,
+                max_iterations=refinement.max_iterations,
+                tolerance=refinement.tolerance,
+                adaptive=refinement.adaptive,
+            )
+        refined = icp_result.transformation
+        with timed(timings, "verification"):
+            confidence = verifier.confidence_at(refined, chosen)
+    else:
+        # The returned pose is the estimator's own: right only if it is close to the
+        # alignment verification found from it.
+        confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
+    with timed(timings, "evaluation"):
+        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
+    timings["total"] = sum(timings.values())
+    success = bool(confidence >= config.verification.success_threshold)
+
+    return RegistrationResult(
+        transformation=refined,
+        correspondences=correspondences,
+        confidences=pair.matches.confidence,
+        fitness=evaluation.fitness,
+        inlier_rmse=evaluation.inlier_rmse,
+        max_correspondence_distance=distance,
+        pose_estimator=chosen_estimator,
+        refinement=refinement.method,
+        transformation_before_refinement=pose,
+        subsampled=pair.subsampled,
+        source_points_used=len(pair.source_index),
+        target_points_used=len(pair.target_index),
+        timings=timings,
+        icp=icp_result,
+        success=success,
+        confidence=float(confidence),
+        verification=verification,
+        config=config,
+        reason=None if success else (
+            f"not verified: confidence {confidence:.3f} is below the success threshold "
+            f"{config.verification.success_threshold:.3f}"
+        ),
+    )
+
+def unregistered_result(
+    pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], reason: str
+) -> RegistrationResult:
+    """The result of a valid pair no pose could be estimated for: the identity, judged a failure."""
+    refinement = config.refinement
+    distance = refinement.max_correspondence_distance or refinement.distance_fraction * pair.normalization.scale
+    identity = np.eye(4)
+    with timed(timings, "evaluation"):
+        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, identity)
+    timings["total"] = sum(timings.values())
+    return RegistrationResult(
+        transformation=identity,
+        correspondences=pair.correspondences,
+        confidences=pair.matches.confidence,
+        fitness=evaluation.fitness,
+        inlier_rmse=evaluation.inlier_rmse,
+        max_correspondence_distance=distance,
+        pose_estimator="none",
+        refinement=None,
+        transformation_before_refinement=identity,
+        subsampled=pair.subsampled,
+        source_points_used=len(pair.source_index),
+        target_points_used=len(pair.target_index),
+        timings=timings,
+        success=False,
+        confidence=0.0,
+        config=config,
+        reason=reason,
+    )
