@@ -312,6 +312,7 @@ def flag_quality(claimed: np.ndarray, right: np.ndarray) -> dict[str, float]:
 def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
     """The report: what the flag was calibrated on, the fitted values, the flag on those pairs."""
     config = payload["verification_config"]
+    with_bunny = any(group.startswith("bunny") for group in pairs_per_group)
     lines = [
         "# Success-flag calibration (validation pairs only)",
         "",
@@ -320,14 +321,16 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         f"Model: {payload['model']['description']}. Pairs: the training run's held-out *validation* shapes",
         "(5 % of ModelNet10 train and of the ModelNet40 train subset; never ModelNet10's test split),",
         "\"partial\" protocol (\"resampled_partial\" for val_resampled_partial), both clouds turned by one",
-        "random rotation; and the Stanford Bunny scan pairs that `benchmarks/bunny.py` does **not**",
-        "benchmark (overlap < 0.3). Groups",
+        "random rotation; val_scan: two simulated range scans of a dense validation shape, each in its own pose"
+        + ("; and the Stanford Bunny scan pairs that `benchmarks/bunny.py` does **not** benchmark (overlap < 0.3)."
+           if with_bunny else "; no real scan (the Bunny is a test set)."),
+        "Groups",
         "(`benchmarks/calibrate_success.py` docstring): " + ", ".join(f"{g} ({n} pairs)" for g, n in pairs_per_group.items()) + ".",
         "",
         "Right = rotation error < 5 deg and translation error < 5 % of the larger radius.",
         "Logistic regression (L2, every group the same total weight) on every hypothesis; the",
-        f"threshold is the lowest with precision >= {payload['target_precision']:.0%} on the chosen hypotheses, raised above",
-        "every wrong real-scan pose.",
+        f"threshold is the lowest with precision >= {payload['target_precision']:.0%} on the chosen hypotheses"
+        + (", raised above every wrong real-scan pose." if with_bunny else "."),
         "",
         "| feature | weight |",
         "| --- | ---: |",

@@ -34,8 +34,8 @@ class RegistrationResult:
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
-            "core" (see :mod:`logdesc_rt.verification`), "init" (the caller's initial guess), or "none" (no pose could be estimated: the
-            identity, see ``reason``).
+            "core" (see :mod:`logdesc_rt.pose.candidates`), "init" (the caller's initial guess),
+            or "none" (no pose could be estimated: the identity, see ``reason``).
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
         icp: how ICP ended (iterations, converged, stop reason, its fitness / RMSE), or None

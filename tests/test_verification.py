@@ -269,3 +269,17 @@ def test_collect_refuses_a_cache_of_another_model(tmp_path):
     with pytest.raises(SystemExit, match="another model"):
         calibrate_success.collect(["val_in_range"], 1, 1, cache=tmp_path)
     assert not (tmp_path / "val_in_range").exists()
+
+
+def test_code_defaults_are_the_shipped_models_matching_and_calibration():
+    """``MatchingConfig()`` and ``VerificationConfig()`` are what the bundled model runs with, so
+    a reader of the defaults learns what ships; matching stored before the dustbin option (v3
+    and older) keeps the paper's reading."""
+    from logdesc_rt.config import MatchingConfig
+
+    bundled = Registrar()
+    assert VerificationConfig() == RuntimeConfig.from_dict(bundled.manifest.runtime).verification
+    assert MatchingConfig() == bundled.manifest.matching
+    legacy = {"sinkhorn_iterations": 50, "match_threshold": 0.0}
+    assert MatchingConfig.from_stored(legacy).dustbin_in_mutual_test is True
+    assert MatchingConfig.from_stored({**legacy, "dustbin_in_mutual_test": False}) == MatchingConfig()
