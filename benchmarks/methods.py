@@ -353,6 +353,7 @@ class MethodRunner:
                     describe_seconds,
                     seed,
                     prefix="logdesc_desc",
+                    working_subsets=(pair.source_index, pair.target_index, len(pair.source_points)),
                 )
             )
         return results
@@ -384,12 +385,22 @@ class MethodRunner:
         )
 
     def _descriptor_estimators(
-        self, source, target, source_features, target_features, normalization, feature_seconds, seed, prefix
+        self, source, target, source_features, target_features, normalization, feature_seconds, seed, prefix,
+        working_subsets=None,
     ) -> dict[str, MethodResult]:
-        """RANSAC and FGR (Open3D) on feature matches; clouds in network units."""
+        """RANSAC and FGR (Open3D) on feature matches; clouds in network units.
+
+        ``working_subsets``: (source indices, target indices, source size) when the features
+        describe working subsets (stray points set aside), so that the matches are reported
+        as indices into the clouds as given."""
         if not hasattr(source, "points"):
             source, target = _cloud(source), _cloud(target)
         pred_match = mutual_nearest_descriptors(source_features, target_features)
+        if working_subsets is not None:
+            source_index, target_index, source_count = working_subsets
+            full = np.full(source_count, -1, dtype=np.int64)
+            full[source_index] = np.where(pred_match >= 0, target_index[np.maximum(pred_match, 0)], -1)
+            pred_match = full
         results = {}
         wanted = set(self.methods) | {REFINED_FROM[m] for m in self.methods if m in REFINED_FROM}
         for name, estimate in (

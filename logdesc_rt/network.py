@@ -117,8 +117,19 @@ class ModelManifest:
 
     def runtime_config(self) -> RuntimeConfig:
         """The model's runtime defaults: ``runtime`` over the code's defaults (not yet
-        resolved: ``Registrar`` fills in the working size and the model's matching)."""
-        return RuntimeConfig.from_dict(self.runtime)
+        resolved: ``Registrar`` fills in the working size and the model's matching).
+
+        A calibration stored without its candidate set (v3 and older) was fitted with the
+        four estimators of its day, and keeps them: its ``agreement`` feature counts among them."""
+        runtime = dict(self.runtime)
+        verification = runtime.get("verification")
+        if isinstance(verification, dict) and "candidates" not in verification:
+            runtime["verification"] = {**verification, "candidates": list(LEGACY_CANDIDATES)}
+        return RuntimeConfig.from_dict(runtime)
+
+
+LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
+"""The candidate estimators of calibrations stored without a candidate set (before "core")."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

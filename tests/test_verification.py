@@ -52,8 +52,8 @@ def test_candidates_recover_an_exact_pose_despite_outliers():
     target = source @ truth[:3, :3].T + truth[:3, 3]
     target[:60] = rng.uniform(-1, 1, size=(60, 3))  # 30 % wrong matches
     candidates = dict(candidate_poses(source, target, np.full(200, 0.5)))
-    assert set(candidates) == {"fsr", "ransac", "svd", "top_k"}
-    for name in ("fsr", "ransac"):
+    assert set(candidates) == set(VerificationConfig().candidates)
+    for name in ("fsr", "ransac", "core"):
         assert rotation_error_deg(candidates[name][:3, :3], truth[:3, :3]) < 1e-4, name  # arccos resolves ~1e-6 deg
     # Plain SVD fits the wrong matches too: the reason it is only one candidate among several.
     assert rotation_error_deg(candidates["svd"][:3, :3], truth[:3, :3]) > 1.0
@@ -283,3 +283,22 @@ def test_code_defaults_are_the_shipped_models_matching_and_calibration():
     legacy = {"sinkhorn_iterations": 50, "match_threshold": 0.0}
     assert MatchingConfig.from_stored(legacy).dustbin_in_mutual_test is True
     assert MatchingConfig.from_stored({**legacy, "dustbin_in_mutual_test": False}) == MatchingConfig()
+
+
+def test_a_calibration_stored_without_its_candidates_keeps_the_four_of_its_day(tmp_path):
+    """v3's manifest holds weights and a threshold but no candidate set: it was fitted with
+    four estimators, and its ``agreement`` feature counts among them, so "core" (added later,
+    in today's default set) must not join its candidates."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+    from logdesc_rt.network import LEGACY_CANDIDATES
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["runtime"]["verification"].pop("candidates")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert Registrar(model).config.verification.candidates == LEGACY_CANDIDATES
+    assert "core" in VerificationConfig().candidates  # today's default set differs
