@@ -30,11 +30,12 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
+from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
 from .validation import as_points
 
-ICP_METHODS = ("point_to_point", "point_to_plane")
+ICP_METHODS = REFINEMENT_METHODS  # one home: logdesc_rt.config
 NORMAL_NEIGHBOURS = 10  # target points whose covariance gives each target normal
 MIN_CORRESPONDENCES = 6  # fewer and a step is not well determined
 # Adaptive distance: each stage halves the correspondence distance, down to SPACING_MULTIPLE x

@@ -47,7 +47,10 @@ def test_icp_refinement_tightens_the_pose(registrar, demo_pair):
     refined = registrar.register(demo_pair.source, demo_pair.target, refine="point_to_plane")
     assert np.array_equal(refined.transformation_before_refinement, coarse.transformation)
     assert rotation_error_deg(refined.rotation, truth) < 0.5
-    assert refined.inlier_rmse <= coarse.inlier_rmse + 1e-9
+    # Point-to-plane ICP minimises distances to the target's planes, not the point-to-point
+    # RMSE reported: at a pose already this close the RMSE may move by a fraction of a percent.
+    assert refined.inlier_rmse <= 1.01 * coarse.inlier_rmse
+    assert refined.fitness >= coarse.fitness - 0.01
 
 
 @pytest.mark.parametrize(("estimator", "bound_deg"), [("svd", 15.0), ("ransac", 5.0), ("core", 5.0)])

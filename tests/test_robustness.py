@@ -125,14 +125,20 @@ def test_one_stray_point_at_100_radii_moves_the_pose_by_under_half_a_degree(regi
 
 
 def test_a_pair_with_no_overlap_is_a_result_not_an_exception(registrar):
+    """No surface in common: the default reading of the matches (dustbin out of the mutual
+    test) finds matches but no pose verification accepts; the paper's reading finds too few
+    matches and returns the identity. Both are results with success False and a reason."""
     rng = np.random.default_rng(0)
     blob = rng.normal(size=(600, 3)) * [0.3, 0.05, 0.01]  # a flat blob against noise in a cube
     noise = rng.uniform(-1, 1, size=(600, 3))
     result = registrar.register(blob, noise)
-    assert not result.success and result.confidence == 0.0
-    assert result.reason is not None and result.reason.startswith("too few matches")
-    assert result.pose_estimator == "none" and np.array_equal(result.transformation, np.eye(4))
+    assert not result.success and result.confidence < result.config.verification.success_threshold
+    assert result.reason is not None and result.reason.startswith("not verified")
     assert result.to_dict()["reason"] == result.reason
+    paper_reading = registrar.register(blob, noise, config={"matching": {"dustbin_in_mutual_test": True}})
+    assert not paper_reading.success and paper_reading.confidence == 0.0
+    assert paper_reading.reason is not None and paper_reading.reason.startswith("too few matches")
+    assert paper_reading.pose_estimator == "none" and np.array_equal(paper_reading.transformation, np.eye(4))
 
 
 def test_box_outliers_in_both_clouds_cost_at_most_one_pair_in_twenty(registrar, shared_data):

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import POSE_ESTIMATORS
+from ..config import POSE_ESTIMATORS, REFINEMENT_METHODS
 from ..errors import LogdescError
 from ..metrics import rotation_error_deg
 
@@ -657,7 +657,7 @@ def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) 
 
 def _add_registration_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", choices=POSE_ESTIMATORS, default=None, help=ESTIMATOR_HELP)
-    parser.add_argument("--refine", choices=("none", "point_to_point", "point_to_plane"), default=None,
+    parser.add_argument("--refine", choices=("none", *REFINEMENT_METHODS), default=None,
                         help="ICP on the full clouds after the learned pose (default: none)")
     parser.add_argument("--max-correspondence-distance", type=float, default=None, metavar="D",
                         help="for ICP, fitness and inlier RMSE, in the clouds' unit (default: 5%% of the larger radius)")
@@ -781,7 +781,7 @@ def build_parser() -> argparse.ArgumentParser:
     align.add_argument("--pairs", type=Path, default=None, metavar="PAIRS.jsonl",
                        help="keep the pairwise records here (JSON lines); a rerun resumes from them")
     _add_parallel_options(align)
-    align.add_argument("--refine", choices=("none", "point_to_point", "point_to_plane"), default=None,
+    align.add_argument("--refine", choices=("none", *REFINEMENT_METHODS), default=None,
                        help="ICP of each pair (default: point_to_plane)")
     align.add_argument("--seed", type=int, default=None, help="seeds registration (default 0)")
     align.add_argument("--config", type=Path, default=None, metavar="FILE.json",
