@@ -50,6 +50,7 @@ import numpy as np
 
 from logdesc_rt import Registrar
 from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
+from logdesc_rt.matching import correspondences_as_array
 from logdesc_rt.normalization import PairNormalization
 from logdesc_rt.refinement import icp
 from logdesc_rt.registration import DEFAULT_DISTANCE_FRACTION
@@ -321,8 +322,7 @@ class MethodRunner:
         results = {}
         # The matches as a target index per source point of the clouds as given (the working
         # subsets may leave points out: larger clouds, stray points).
-        pred_match = np.full(len(source), -1, dtype=np.int64)
-        pred_match[pair.correspondences[:, 0]] = pair.correspondences[:, 1]
+        pred_match = correspondences_as_array(pair.correspondences, len(source))
         wanted = set(self.methods)
         if "logdesc_fsr_icp" in wanted:
             wanted.add("logdesc_fsr")

@@ -217,6 +217,14 @@ def mutual_matches(
 
 def matches_as_array(matches: Matches, source_count: int) -> np.ndarray:
     """(N,) int64: the matched target index of every source point, -1 where unmatched."""
+    return correspondences_as_array(np.stack([matches.source_index, matches.target_index], axis=1), source_count)
+
+
+def correspondences_as_array(correspondences: np.ndarray, source_count: int) -> np.ndarray:
+    """(N,) int64 from (K, 2) rows [source index, target index]: the matched target index of
+    every source point, -1 where unmatched (``RegistrationResult.correspondences`` in, the
+    form the matching metrics read out)."""
+    correspondences = np.asarray(correspondences, dtype=np.int64).reshape(-1, 2)
     assignment = np.full(source_count, -1, dtype=np.int64)
-    assignment[matches.source_index] = matches.target_index
+    assignment[correspondences[:, 0]] = correspondences[:, 1]
     return assignment

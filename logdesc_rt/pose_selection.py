@@ -65,7 +65,7 @@ def register_matched(
 
     scale = pair.normalization.scale
     refinement = config.refinement
-    distance = refinement.max_correspondence_distance or refinement.distance_fraction * scale
+    distance = correspondence_distance(pair, config)
     report(
         f"verifying {len(candidates)} candidate poses on the full clouds "
         f"({len(pair.source_points)} x {len(pair.target_points)} points)"
@@ -141,12 +141,19 @@ def register_matched(
         ),
     )
 
+
+def correspondence_distance(pair: PairMatches, config: RuntimeConfig) -> float:
+    """The distance for fitness, inlier RMSE and ICP, user units: the caller's, or
+    ``distance_fraction`` x the pair's scale (the larger cloud's radius)."""
+    refinement = config.refinement
+    return refinement.max_correspondence_distance or refinement.distance_fraction * pair.normalization.scale
+
+
 def unregistered_result(
     pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], reason: str
 ) -> RegistrationResult:
     """The result of a valid pair no pose could be estimated for: the identity, judged a failure."""
-    refinement = config.refinement
-    distance = refinement.max_correspondence_distance or refinement.distance_fraction * pair.normalization.scale
+    distance = correspondence_distance(pair, config)
     identity = np.eye(4)
     with timed(timings, "evaluation"):
         evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, identity)

@@ -57,6 +57,7 @@ from logdesc_rt.config import (
     RuntimeConfig,
     VerificationConfig,
 )
+from logdesc_rt.matching import correspondences_as_array
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, registration_metrics, rotation_error_deg
 from logdesc_rt.normalization import PairNormalization
 from logdesc_rt.pair import pair_from_scores
@@ -84,7 +85,6 @@ __all__ = [
     "evaluate_checkpoint",
     "evaluate_model",
     "evaluation_keys",
-    "matched_source_array",
     "format_markdown",
     "load_checkpoint",
     "model_from_checkpoint",
@@ -229,13 +229,6 @@ def _as_numpy(value) -> np.ndarray:
     return np.asarray(value, dtype=np.float64)
 
 
-def matched_source_array(result: RegistrationResult, count: int) -> np.ndarray:
-    """(count,) int64 target index per source point from a result's correspondences, -1 unmatched."""
-    pred = np.full(count, -1, dtype=np.int64)
-    pred[result.correspondences[:, 0]] = result.correspondences[:, 1]
-    return pred
-
-
 # ----------------------------------------------------------------------------- test pairs
 def modelnet10_test_dataset(
     data_root=DEFAULT_DATA_ROOT,
@@ -341,7 +334,7 @@ def evaluate_model(
                         source=source,
                         target=batch["target_user"][row].numpy(),
                         scale=float(batch["scale"][row]),
-                        pred_match=matched_source_array(result, len(source)),
+                        pred_match=correspondences_as_array(result.correspondences, len(source)),
                         gt_match=batch["gt_match_src"][row].numpy(),
                         match_count=len(result.correspondences),
                         pose_failed=result.pose_estimator == "none",

@@ -54,6 +54,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from logdesc_rt.config import GeometryConfig, MatchingConfig, NormalizationConfig
+from logdesc_rt.matching import correspondences_as_array
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG, matching_metrics, rotation_error_deg
 from training.checkpoint import is_weights_only
 from training.config import PRESETS, ModelConfig
@@ -74,7 +75,7 @@ from training.data import (
     run_split,
     validation_keys,
 )
-from training.evaluate import evaluation_config, matched_source_array, register_scored_batch
+from training.evaluate import evaluation_config, register_scored_batch
 from training.losses import assignment_nll, descriptor_infonce
 from training.model import LoGDescMatcher
 from training.run_state import (
@@ -288,7 +289,7 @@ def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConf
             losses.append((assignment_nll(log_assignment, batch["gt_match_src"], batch["gt_match_tgt"]).item(), count))
             gt_src = batch["gt_match_src"].cpu().numpy()
             for row, result, _ in register_scored_batch(outputs["scores"].float().cpu().numpy(), batch, dustbin, config):
-                predicted = matched_source_array(result, len(gt_src[row]))
+                predicted = correspondences_as_array(result.correspondences, len(gt_src[row]))
                 true_pose = batch["T_gt_user"][row].cpu().numpy()
                 per_pair.append({
                     "protocol": batch["protocol"][row],
