@@ -21,6 +21,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -158,6 +161,31 @@ def read_manifest(model_dir: Path) -> ModelManifest:
     return manifest
 
 
+_NETWORK_THREAD: ThreadPoolExecutor | None = None
+_NETWORK_THREAD_LOCK = threading.Lock()
+
+
+def network_thread() -> ThreadPoolExecutor:
+    """The one thread (per process) that creates and runs every onnxruntime session of this
+    package: it carries onnxruntime's flush-to-zero mode (see :class:`OnnxNetwork`), which the
+    caller's threads never see. Calls from several threads queue here, one graph at a time; each
+    graph still uses its session's intra-op threads."""
+    global _NETWORK_THREAD
+    with _NETWORK_THREAD_LOCK:
+        if _NETWORK_THREAD is None:
+            _NETWORK_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logdesc-rt-network")
+        return _NETWORK_THREAD
+
+
+def _forget_network_thread() -> None:
+    # A forked child has no copy of the thread: start a new one when it first needs one.
+    global _NETWORK_THREAD, _NETWORK_THREAD_LOCK
+    _NETWORK_THREAD, _NETWORK_THREAD_LOCK = None, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_network_thread)
+
+
 class OnnxNetwork:
     """The two ONNX graphs of one model, loaded once, run on the CPU.
 
@@ -182,18 +210,26 @@ class OnnxNetwork:
         # above baseline, both networks, four calls at N = 1024 / 2048 / 4096 points:
         # 557 / 1980 / ~7640 MiB with it, 297 / 1201 / 4936 MiB without (benchmarks/latency.py).
         options.enable_mem_pattern = False
+        # Denormal floats. Attention logits ~90 below their row's maximum give softmax terms in
+        # float32's denormal range, which x86 cores process ~100x slower; v4's distance-biased
+        # heads have ~5 % such entries, and with them the networks took twice as long (1024
+        # points: descriptor 88 -> 44 ms, matcher 122 -> 74 ms per call once flushed). Flushing
+        # them to zero (FTZ/DAZ) changes no value above 1e-38. onnxruntime sets the mode on each
+        # session's pool threads, and once per process (the first session only) on the thread
+        # that creates it; so every session is created and run on one thread of this module's
+        # own (network_thread), and the caller's threads keep IEEE denormals.
+        options.add_session_config_entry("session.set_denormal_as_zero", "1")
         if threads is not None:
             if threads < 1:
                 raise ValueError(f"threads: {threads} < 1")
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1
+        def load(name: str):
+            return onnxruntime.InferenceSession(str(self.model_dir / name), options, providers=["CPUExecutionProvider"])
+
         try:
-            self._descriptor = onnxruntime.InferenceSession(
-                str(self.model_dir / DESCRIPTOR_FILE), options, providers=["CPUExecutionProvider"]
-            )
-            self._matcher = onnxruntime.InferenceSession(
-                str(self.model_dir / MATCHER_FILE), options, providers=["CPUExecutionProvider"]
-            )
+            self._descriptor = network_thread().submit(load, DESCRIPTOR_FILE).result()
+            self._matcher = network_thread().submit(load, MATCHER_FILE).result()
         except Exception as error:  # onnxruntime raises its own untyped exceptions
             raise ModelFileError(f"{self.model_dir}: onnxruntime cannot load the model ({error})") from error
         self._descriptor_inputs = [i.name for i in self._descriptor.get_inputs()]
@@ -211,7 +247,7 @@ class OnnxNetwork:
             (N, d) float32 unit-norm descriptors.
         """
         arrays = {"edges": edges, "points": points, "normals": normals}
-        return self._descriptor.run(None, self._feeds(self._descriptor_inputs, arrays))[0][0]
+        return self._run(self._descriptor, self._feeds(self._descriptor_inputs, arrays))
 
     def match_scores(
         self,
@@ -234,7 +270,11 @@ class OnnxNetwork:
             "points_source": source_points,
             "points_target": target_points,
         }
-        return self._matcher.run(None, self._feeds(self._matcher_inputs, arrays))[0][0]
+        return self._run(self._matcher, self._feeds(self._matcher_inputs, arrays))
+
+    def _run(self, session, feeds: dict[str, np.ndarray]) -> np.ndarray:
+        """The graph's one output, batch axis dropped, computed on the network thread."""
+        return network_thread().submit(session.run, None, feeds).result()[0][0]
 
     def _feeds(self, input_names: list[str], arrays: dict[str, np.ndarray | None]) -> dict[str, np.ndarray]:
         """The graph's inputs, by name, as (1, ...) float32 batches of one."""

@@ -235,3 +235,36 @@ def test_corrupt_or_missing_model_files_are_refused(tmp_path):
         Registrar(model_dir)
     with pytest.raises(ModelFileError, match="no model manifest"):
         Registrar(tmp_path)
+
+
+_DENORMAL_PROBE = r"""
+import numpy as np
+from logdesc_rt import Registrar
+from logdesc_rt.demo import make_demo_pair
+from logdesc_rt.network import network_thread
+
+def flushes(x):  # True when this thread treats denormal floats as zero (FTZ / DAZ)
+    return bool((np.array([1e-40], dtype=np.float32) * np.float32(x))[0] == 0.0)
+
+pair = make_demo_pair()
+source, target = pair.source, pair.target
+first = Registrar().register(source, target).transformation
+second = Registrar().register(source, target).transformation  # a second model, same thread
+print(flushes(1.0), network_thread().submit(flushes, 1.0).result(), float(np.abs(first - second).max()))
+"""
+
+
+def test_the_networks_flush_denormals_on_their_own_thread_only():
+    """onnxruntime's flush-to-zero mode (the networks' speed, see OnnxNetwork) must not leak into
+    the caller's threads, must hold on the thread that runs the graphs, and changes nothing in
+    the result. A fresh process: the mode is set by the first onnxruntime session it creates."""
+    import subprocess
+    import sys
+
+    completed = subprocess.run(
+        [sys.executable, "-c", _DENORMAL_PROBE], capture_output=True, text=True, timeout=300, check=True
+    )
+    caller_flushes, network_flushes, difference = completed.stdout.split()
+    assert caller_flushes == "False", "the caller's thread lost IEEE denormals"
+    assert network_flushes == "True", "the network thread does not flush denormals (the slow path)"
+    assert float(difference) == 0.0
