@@ -57,32 +57,46 @@ def _farthest_point_indices(points: np.ndarray, count: int, start_index: int) ->
     marked -inf, so duplicates are still picked once each and ``count == N`` yields a
     permutation; the running minimum never lifts a mark back up because ``min(-inf, d) = -inf``.
     """
-    selected = np.empty(count, dtype=np.int64)
+    return _farthest_point_indices_from(points, count, np.array([start_index]))[0]
+
+
+def _farthest_point_indices_from(points: np.ndarray, count: int, start_indices: np.ndarray) -> np.ndarray:
+    """:func:`_farthest_point_indices` from R starting points at once: (R, count) int64, row r
+    exactly the single run from ``start_indices[r]`` (the same arithmetic, row by row), in one
+    loop over the picks (FSR's seven rounds share it)."""
+    rounds = len(start_indices)
+    selected = np.empty((rounds, count), dtype=np.int64)
     if count == 0:
         return selected
-    # One contiguous array per axis: the per-step update then runs on 1-D vectors in
+    # One contiguous array per axis: the per-step update then runs on 1-D rows in
     # preallocated buffers, about 5x faster than (N, 3) row arithmetic.
     xs, ys, zs = (np.ascontiguousarray(points[:, axis]) for axis in range(3))
     tolerance = FPS_TIE_TOLERANCE * float(np.max(xs * xs + ys * ys + zs * zs))
-    selected[0] = start_index
-    nearest_squared = (xs - xs[start_index]) ** 2 + (ys - ys[start_index]) ** 2 + (zs - zs[start_index]) ** 2
-    nearest_squared[start_index] = -np.inf
-    distance_squared = np.empty_like(xs)
-    scratch = np.empty_like(xs)
-    near_tie = np.empty(len(xs), dtype=bool)
-    for position in range(1, count):
-        largest = nearest_squared[int(np.argmax(nearest_squared))]
-        np.greater_equal(nearest_squared, largest - tolerance, out=near_tie)
-        chosen = int(np.argmax(near_tie))  # the lowest index among the (near-)ties
-        selected[position] = chosen
-        np.subtract(xs, xs[chosen], out=distance_squared)
+    rows = np.arange(rounds)
+    distance_squared = np.empty((rounds, len(xs)))
+    scratch = np.empty_like(distance_squared)
+    near_tie = np.empty(distance_squared.shape, dtype=bool)
+
+    def squared_distances_to(chosen: np.ndarray) -> np.ndarray:
+        np.subtract(xs, xs[chosen][:, None], out=distance_squared)
         np.multiply(distance_squared, distance_squared, out=distance_squared)
         for axis_values in (ys, zs):
-            np.subtract(axis_values, axis_values[chosen], out=scratch)
+            np.subtract(axis_values, axis_values[chosen][:, None], out=scratch)
             np.multiply(scratch, scratch, out=scratch)
-            distance_squared += scratch
-        np.minimum(nearest_squared, distance_squared, out=nearest_squared)
-        nearest_squared[chosen] = -np.inf
+            np.add(distance_squared, scratch, out=distance_squared)
+        return distance_squared
+
+    chosen = np.asarray(start_indices, dtype=np.int64)
+    selected[:, 0] = chosen
+    nearest_squared = squared_distances_to(chosen).copy()
+    nearest_squared[rows, chosen] = -np.inf
+    for position in range(1, count):
+        largest = nearest_squared.max(axis=1)
+        np.greater_equal(nearest_squared, (largest - tolerance)[:, None], out=near_tie)
+        chosen = near_tie.argmax(axis=1)  # the lowest index among the (near-)ties
+        selected[:, position] = chosen
+        np.minimum(nearest_squared, squared_distances_to(chosen), out=nearest_squared)
+        nearest_squared[rows, chosen] = -np.inf
     return selected
 
 

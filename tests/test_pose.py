@@ -459,6 +459,36 @@ def test_max_core_finds_the_densest_consistent_set():
     assert max_core(graph).tolist() == clique
 
 
+def _core_by_peeling_one_node_at_a_time(graph: np.ndarray) -> list[int]:
+    """The textbook definition: remove the node of least degree, one at a time; a node's core
+    number is the largest least degree seen up to its removal; the maximum core is the nodes
+    of the largest core number."""
+    adjacency = graph.copy()
+    np.fill_diagonal(adjacency, False)
+    alive = set(range(len(graph)))
+    core, level = {}, 0
+    while alive:
+        node = min(alive, key=lambda n: (sum(adjacency[n, m] for m in alive), n))
+        level = max(level, sum(adjacency[node, m] for m in alive))
+        core[node] = level
+        alive.remove(node)
+    return sorted(n for n, c in core.items() if c == max(core.values()))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_max_core_is_the_textbook_maximum_k_core(seed):
+    from logdesc_rt.pose.consistency import max_core
+
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(1, 40))
+    graph = rng.random((count, count)) < rng.uniform(0.05, 0.7)
+    graph |= graph.T
+    if seed % 2:  # a planted dense set, as right matches make
+        planted = rng.choice(count, size=max(1, count // 3), replace=False)
+        graph[np.ix_(planted, planted)] = True
+    assert max_core(graph).tolist() == _core_by_peeling_one_node_at_a_time(graph)
+
+
 def test_the_consistency_core_holds_where_most_matches_are_wrong():
     """85 % wrong matches: FSR (meant for mostly right ones) breaks, the maximum consistent core
     of the matches does not; and it is deterministic."""

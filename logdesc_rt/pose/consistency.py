@@ -17,6 +17,7 @@ Cost: O(K^2) time and memory for K matches (K <= ``max_matches``, the most confi
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from ..errors import TooFewPointsError
 from .svd import refine_on_inliers, rigid_transform_svd, validate_correspondences
@@ -28,27 +29,28 @@ def max_core(consistent: np.ndarray) -> np.ndarray:
     Args:
         consistent: (K, K) bool adjacency, symmetric, diagonal ignored.
 
-    Peeling: repeatedly remove the node of least remaining degree (lowest index on ties); a
-    node's core number is the largest least-degree seen up to its removal, and the nodes of the
-    largest core number form the maximum k-core.
+    The k-core is what is left after repeatedly removing every node of degree < k; it is
+    unique, and the cores are nested. Starting from the whole graph (the k-core for k = its
+    least degree), each round removes, all at once, every node of degree <= the current least
+    degree, and then those that fall to it, until every node left has a larger degree: the next
+    core. The last non-empty core is the maximum k-core. Each removal subtracts its row from
+    the degrees, so the whole peeling is O(K^2) in a few dozen vectorised rounds (one node at a
+    time, a Python loop over K nodes took 60 ms at K = 600).
     """
-    count = len(consistent)
     adjacency = consistent.copy()
     np.fill_diagonal(adjacency, False)
-    degree = adjacency.sum(axis=1).astype(np.int64)
-    removed = np.zeros(count, dtype=bool)
-    core = np.zeros(count, dtype=np.int64)
-    level = 0
-    remaining = np.where(removed, np.iinfo(np.int64).max, degree)
-    for _ in range(count):
-        node = int(np.argmin(remaining))
-        level = max(level, int(remaining[node]))
-        core[node] = level
-        removed[node] = True
-        remaining[node] = np.iinfo(np.int64).max
-        neighbours = adjacency[node] & ~removed
-        remaining[neighbours] -= 1
-    return np.flatnonzero(core == core.max()).astype(np.int64)
+    degree = np.count_nonzero(adjacency, axis=1)
+    alive = np.ones(len(adjacency), dtype=bool)
+    core = alive.copy()
+    while alive.any():
+        core = alive.copy()
+        level = degree[alive].min()  # every alive node has at least this degree: a level-core
+        leaving = alive & (degree <= level)
+        while leaving.any():
+            alive &= ~leaving
+            degree = degree - np.count_nonzero(adjacency[leaving], axis=0)
+            leaving = alive & (degree <= level)
+    return np.flatnonzero(core).astype(np.int64)
 
 
 def consistency_pose(
@@ -81,8 +83,8 @@ def consistency_pose(
     if len(weights) > max_matches:
         kept = np.sort(np.argsort(-weights, kind="stable")[:max_matches])
         source, target, weights = source[kept], target[kept], weights[kept]
-    source_distance = np.linalg.norm(source[:, None, :] - source[None, :, :], axis=2)
-    target_distance = np.linalg.norm(target[:, None, :] - target[None, :, :], axis=2)
+    source_distance = cdist(source, source)
+    target_distance = cdist(target, target)
     core = max_core(np.abs(source_distance - target_distance) < 2.0 * noise_bound)
     if len(core) < 3:
         raise TooFewPointsError(f"consistency_pose: the largest consistent set has {len(core)} matches, a pose needs 3")

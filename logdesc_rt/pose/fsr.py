@@ -27,7 +27,7 @@ import numpy as np
 
 from ..config import FsrConfig
 from ..errors import DegenerateGeometryError, TooFewPointsError
-from ..sampling import _farthest_point_indices, _power_of_two_scale
+from ..sampling import _farthest_point_indices_from, _power_of_two_scale
 from .svd import (
     PoseEstimate,
     correspondence_residuals_squared,
@@ -132,12 +132,8 @@ def _best_sampled_hypothesis(source: np.ndarray, target: np.ndarray, config: Fsr
     # Distinct starting points while there are enough matches, so that rounds differ.
     start_order = generator.permutation(match_count)
     scaled_source = source / _power_of_two_scale(source)
-    subsets = np.stack(
-        [
-            _farthest_point_indices(scaled_source, sample_size, int(start_order[round_index % match_count]))
-            for round_index in range(config.iterations)
-        ]
-    )
+    starts = start_order[np.arange(config.iterations) % match_count]
+    subsets = _farthest_point_indices_from(scaled_source, sample_size, starts)
     rotations, translations, degenerate = solve_rigid_batch(source[subsets], target[subsets])
     residuals = correspondence_residuals_squared(rotations, translations, source, target)
     inlier_counts = np.count_nonzero(residuals < config.inlier_threshold**2, axis=1)

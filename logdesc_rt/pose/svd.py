@@ -136,9 +136,14 @@ def correspondence_residuals_squared(
 
     Overflow (coordinates near 1e308) yields inf or nan, which no inlier test accepts.
     """
+    batch, count = len(rotations), len(source)
     with np.errstate(over="ignore", invalid="ignore"):
-        moved = np.einsum("bij,mj->bmi", rotations, source) + translations[:, None, :]
-        return np.sum((moved - target[None]) ** 2, axis=2)
+        # All B rotations in one (M, 3) x (3, 3B) product, axis-major so that the sum over the
+        # three axes adds contiguous planes (an einsum here cost RANSAC ~20 of its 28 ms).
+        rotated = (source @ rotations.transpose(2, 1, 0).reshape(3, 3 * batch)).reshape(count, 3, batch)
+        offset = rotated + (translations.T[None, :, :] - target[:, :, None])
+        np.square(offset, out=offset)
+        return offset.sum(axis=1).T
 
 
 def refine_on_inliers(
