@@ -16,6 +16,7 @@ from .invariant_features import (
     CHIRAL_EDGE_CHANNELS,
     INVARIANT_EDGE_CHANNELS,
     chiral_edge_channels,
+    edge_vectors,
     invariant_edge_features,
 )
 from .neighbours import drop_self, knn_excluding_self, nearest_neighbours
@@ -89,10 +90,13 @@ def compute_geometry(points, config: GeometryConfig = GeometryConfig()) -> Point
         normals = umbrella_normals(points, neighbour_index, pca.lrf, config.umbrella_area_temperature)
     shape_features = np.stack([pca.anisotropy, pca.planarity, pca.omnivariance], axis=1)
     if config.edge_layout in ("invariant", "chiral"):
-        edges = invariant_edge_features(points, shape_features, normals, neighbour_index, config.pca_radius)
+        vectors = edge_vectors(points, normals, neighbour_index)
+        edges = invariant_edge_features(
+            points, shape_features, normals, neighbour_index, config.pca_radius, vectors
+        )
         if config.edge_layout == "chiral":
             gate = (pca.anisotropy - pca.planarity) * pca.planarity
-            chiral = chiral_edge_channels(points, normals, pca.lrf, gate, neighbour_index)
+            chiral = chiral_edge_channels(points, normals, pca.lrf, gate, neighbour_index, vectors)
             edges = np.concatenate([edges, chiral], axis=2)
     else:
         edges = edge_features(points, shape_features, pca.lrf, normals, neighbour_index)

@@ -40,6 +40,8 @@ smooth surfaces (third order in the bend) in a range the first layer can use.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..config import EDGE_CHANNELS
@@ -48,12 +50,58 @@ INVARIANT_EDGE_CHANNELS = EDGE_CHANNELS["invariant"]  # the layout below; one nu
 CHIRAL_EDGE_CHANNELS = EDGE_CHANNELS["chiral"]
 
 
+@dataclass(frozen=True)
+class EdgeVectors:
+    """What both edge layouts read about each edge (i, m = neighbour_index[i, j]), computed once.
+
+    Attributes:
+        distance: (N, k) r = |x_m - x_i|.
+        direction: (N, k, 3) e = (x_m - x_i) / r (0 for exact duplicates: no direction).
+        neighbour_normals: (N, k, 3) n_m.
+        normal_i_offset: (N, k) n_i . e.
+        normal_m_offset: (N, k) n_m . e.
+    """
+
+    distance: np.ndarray
+    direction: np.ndarray
+    neighbour_normals: np.ndarray
+    normal_i_offset: np.ndarray
+    normal_m_offset: np.ndarray
+
+
+def edge_vectors(points: np.ndarray, normals: np.ndarray, neighbour_index: np.ndarray) -> EdgeVectors:
+    """:class:`EdgeVectors` of (N, 3) points with (N, 3) unit normals and (N, k) neighbours."""
+    offsets = np.take(points, neighbour_index, axis=0) - points[:, None, :]  # (N, k, 3); take: ~5x faster than [ ]
+    distance = np.sqrt(_dot_last(offsets, offsets))
+    direction = offsets / np.where(distance > 0.0, distance, 1.0)[..., None]
+    neighbour_normals = np.take(normals, neighbour_index, axis=0)
+    return EdgeVectors(
+        distance=distance,
+        direction=direction,
+        neighbour_normals=neighbour_normals,
+        normal_i_offset=_dot_each(direction, normals),
+        normal_m_offset=_dot_last(direction, neighbour_normals),
+    )
+
+
+def _dot_last(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(N, k) dot products of (N, k, 3) vectors, row by row (a batched matmul: several times
+    faster than einsum at these shapes)."""
+    return (first[..., None, :] @ second[..., :, None])[..., 0, 0]
+
+
+def _dot_each(vectors: np.ndarray, per_point: np.ndarray) -> np.ndarray:
+    """(N, k) dot products of (N, k, 3) vectors with one (N, 3) vector per point."""
+    return (vectors @ per_point[:, :, None])[..., 0]
+
+
 def invariant_edge_features(
     points: np.ndarray,
     shape_features: np.ndarray,
     normals: np.ndarray,
     neighbour_index: np.ndarray,
     length_scale: float,
+    vectors: EdgeVectors | None = None,
 ) -> np.ndarray:
     """Build the invariant edge-feature tensor.
 
@@ -63,29 +111,24 @@ def invariant_edge_features(
         normals: (N, 3) unit normals; their signs do not matter.
         neighbour_index: (N, k) neighbour indices.
         length_scale: R above (network units), > 0.
+        vectors: :func:`edge_vectors` of the same arguments, when the caller has them.
 
     Returns:
         (N, k, 11) float32, channels as in the module docstring.
     """
     count, k = neighbour_index.shape
-    offsets = points[neighbour_index] - points[:, None, :]  # (N, k, 3)
-    distance = np.linalg.norm(offsets, axis=2)  # (N, k)
-    # Exact duplicates (r = 0) get e = 0: no direction, every angle channel reads 0.
-    direction = offsets / np.where(distance > 0.0, distance, 1.0)[..., None]
-    neighbour_normals = normals[neighbour_index]  # (N, k, 3)
-    normal_i_offset = np.einsum("nkc,nc->nk", direction, normals)
-    normal_m_offset = np.einsum("nkc,nkc->nk", direction, neighbour_normals)
-    normal_i_normal_m = np.einsum("nkc,nc->nk", neighbour_normals, normals)
+    edge = vectors if vectors is not None else edge_vectors(points, normals, neighbour_index)
+    normal_i_normal_m = _dot_each(edge.neighbour_normals, normals)
 
     scaled_shape = shape_features * np.array([1.0, 1.0, 1.0 / length_scale**2])
     edges = np.empty((count, k, INVARIANT_EDGE_CHANNELS), dtype=np.float32)
-    edges[:, :, 0] = distance / length_scale
-    edges[:, :, 1] = np.abs(normal_i_offset)
-    edges[:, :, 2] = np.abs(normal_m_offset)
+    edges[:, :, 0] = edge.distance / length_scale
+    edges[:, :, 1] = np.abs(edge.normal_i_offset)
+    edges[:, :, 2] = np.abs(edge.normal_m_offset)
     edges[:, :, 3] = np.abs(normal_i_normal_m)
-    edges[:, :, 4] = normal_i_offset * normal_m_offset * normal_i_normal_m
+    edges[:, :, 4] = edge.normal_i_offset * edge.normal_m_offset * normal_i_normal_m
     edges[:, :, 5:8] = scaled_shape[:, None, :]
-    edges[:, :, 8:11] = scaled_shape[neighbour_index] - scaled_shape[:, None, :]
+    edges[:, :, 8:11] = np.take(scaled_shape, neighbour_index, axis=0) - scaled_shape[:, None, :]
     return edges
 
 
@@ -95,6 +138,7 @@ def chiral_edge_channels(
     lrf: np.ndarray,
     eigen_gate: np.ndarray,
     neighbour_index: np.ndarray,
+    vectors: EdgeVectors | None = None,
 ) -> np.ndarray:
     """The two reflection-odd channels 11 and 12 of the ``"chiral"`` layout (module docstring).
 
@@ -104,24 +148,20 @@ def chiral_edge_channels(
         lrf: (N, 3, 3) local frames, columns (u, v, w); the signs of u and w do not matter.
         eigen_gate: (N,) g_i = (A_i - P_i) P_i, in [0, 1].
         neighbour_index: (N, k) neighbour indices.
+        vectors: :func:`edge_vectors` of the same points, normals and neighbours, when the
+            caller has them.
 
     Returns:
         (N, k, 2) float32.
     """
-    offsets = points[neighbour_index] - points[:, None, :]
-    distance = np.linalg.norm(offsets, axis=2)
-    direction = offsets / np.where(distance > 0.0, distance, 1.0)[..., None]
-    neighbour_normals = normals[neighbour_index]
-    normal_i_offset = np.einsum("nkc,nc->nk", direction, normals)
-    normal_m_offset = np.einsum("nkc,nkc->nk", direction, neighbour_normals)
-    twist = np.einsum("nkc,nkc->nk", np.cross(normals[:, None, :], neighbour_normals), direction)
+    edge = vectors if vectors is not None else edge_vectors(points, normals, neighbour_index)
+    twist = _dot_last(np.cross(normals[:, None, :], edge.neighbour_normals), edge.direction)
     major, normal_axis = lrf[:, :, 0], lrf[:, :, 2]
-    octant = (
-        np.einsum("nkc,nc->nk", direction, np.cross(major, normal_axis))
-        * np.einsum("nkc,nc->nk", direction, major)
-        * np.einsum("nkc,nc->nk", direction, normal_axis)
-    )
+    # The edge's coordinates along the frame axes (u x w, u, w): one product for all three.
+    axes = np.stack([np.cross(major, normal_axis), major, normal_axis], axis=2)  # (N, 3, 3)
+    along = edge.direction @ axes  # (N, k, 3)
+    octant = along[..., 0] * along[..., 1] * along[..., 2]
     channels = np.empty(neighbour_index.shape + (2,), dtype=np.float32)
-    channels[:, :, 0] = np.cbrt(twist * normal_i_offset * normal_m_offset)
+    channels[:, :, 0] = np.cbrt(twist * edge.normal_i_offset * edge.normal_m_offset)
     channels[:, :, 1] = np.cbrt(eigen_gate[:, None] * octant)
     return channels
