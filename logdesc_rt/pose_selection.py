@@ -17,7 +17,7 @@ import numpy as np
 from .config import RuntimeConfig
 from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
-from .refinement import icp
+from .refinement import refine_pose
 from .results import RegistrationResult
 from .timing import timed
 from .verification import PoseVerifier
@@ -94,15 +94,8 @@ def register_matched(
     if refinement.method is not None:
         report(f"refining: {refinement.method} ICP on the full clouds")
         with timed(timings, "refinement"):
-            icp_result = icp(
-                pair.source_points,
-                pair.target_points,
-                chosen.verified_transformation,
-                distance,
-                method=refinement.method,
-                max_iterations=refinement.max_iterations,
-                tolerance=refinement.tolerance,
-                adaptive=refinement.adaptive,
+            icp_result = refine_pose(
+                pair.source_points, pair.target_points, chosen.verified_transformation, distance, refinement
             )
         refined = icp_result.transformation
         with timed(timings, "verification"):

@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
+from .sampling import seeded_subset
 from .validation import as_points
 
 ICP_METHODS = REFINEMENT_METHODS  # one home: logdesc_rt.config
@@ -90,13 +91,55 @@ def estimate_normals(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
     Returns:
         (N, 3) float64 unit vectors; their sign is arbitrary (point-to-plane does not care).
     """
-    k = int(min(max(neighbours, 3), len(points)))
-    _, index = KDTree(points).query(points, k=k)
-    neighbourhoods = np.take(points, index.reshape(len(points), k), axis=0)  # (N, k, 3)
-    centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
-    covariance = centred.transpose(0, 2, 1) @ centred  # a batched matmul: faster than einsum here
-    _, vectors = np.linalg.eigh(covariance)  # ascending eigenvalues
-    return vectors[:, :, 0]
+    return _TargetNormals(points, KDTree(points), neighbours).at(np.arange(len(points)))
+
+
+def refine_pose(source, target, initial: np.ndarray, max_distance: float, config) -> IcpResult:
+    """:func:`icp` as ``register(refine=...)`` runs it: the method, limits, adaptive stages and
+    source subset of a :class:`~logdesc_rt.config.RefinementConfig` whose method is set."""
+    if config.method is None:
+        raise ValueError("refine_pose: the refinement config has no method")
+    return icp(
+        source,
+        target,
+        initial,
+        max_distance,
+        method=config.method,
+        max_iterations=config.max_iterations,
+        tolerance=config.tolerance,
+        adaptive=config.adaptive,
+        max_source_points=config.max_source_points,
+        seed=config.seed,
+    )
+
+
+class _TargetNormals:
+    """:func:`estimate_normals` of a cloud, computed only for the points asked for, once each.
+
+    ICP on a large target meets a fraction of its points; the PCA of all of them cost most of
+    a 200k-point refinement. Each normal is computed exactly as ``estimate_normals`` computes it
+    (same tree, same neighbours, same covariance): asking for all points gives its result.
+    """
+
+    def __init__(self, points: np.ndarray, tree: KDTree, neighbours: int = NORMAL_NEIGHBOURS):
+        self.points, self.tree = points, tree
+        self.neighbours = int(min(max(neighbours, 3), len(points)))
+        self.normals = np.zeros((len(points), 3))
+        self.known = np.zeros(len(points), dtype=bool)
+
+    def at(self, index: np.ndarray) -> np.ndarray:
+        """(K, 3) normals of the points ``index`` (K,) int."""
+        missing = np.unique(index[~self.known[index]])
+        if len(missing):
+            k = self.neighbours
+            _, neighbour_index = self.tree.query(self.points[missing], k=k)
+            neighbourhoods = np.take(self.points, neighbour_index.reshape(len(missing), k), axis=0)  # (K, k, 3)
+            centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
+            covariance = centred.transpose(0, 2, 1) @ centred  # a batched matmul: faster than einsum here
+            _, vectors = np.linalg.eigh(covariance)  # ascending eigenvalues
+            self.normals[missing] = vectors[:, :, 0]
+            self.known[missing] = True
+        return self.normals[index]
 
 
 def icp(
@@ -109,6 +152,8 @@ def icp(
     tolerance: float = 1e-7,
     adaptive: bool = False,
     target_normals: np.ndarray | None = None,
+    max_source_points: int | None = None,
+    seed: int = 0,
 ) -> IcpResult:
     """Refine ``initial`` by iterative closest points.
 
@@ -125,12 +170,17 @@ def icp(
             (module docstring); at most 4 stages.
         target_normals: (M, 3) unit normals of ``target`` for point-to-plane, if the caller
             has them (verification refines several poses against one target); else estimated
-            here (:func:`estimate_normals`).
+            here as :func:`estimate_normals` would, for the target points ICP meets only.
+        max_source_points: iterate on a seeded uniform subset of at most this many source
+            points (None: all). Its correspondences pull the pose as the whole cloud's do, at a
+            fraction of the cost of a large cloud; the target is used whole. The adaptive
+            stages read the target's point spacing from as many of its points.
+        seed: seeds those subsets.
 
     Returns:
         :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose at
-        ``max_distance`` (whatever distance the last stage used); ``iterations`` counts all
-        stages.
+        ``max_distance`` (whatever distance the last stage used), over the source points ICP
+        iterated on; ``iterations`` counts all stages.
 
     Raises:
         ValueError: unknown method, ``max_distance`` not > 0, ``initial`` not a rigid (4, 4)
@@ -144,9 +194,13 @@ def icp(
         raise ValueError(f"max_distance: {max_distance} must be finite and > 0")
     if max_iterations < 1:
         raise ValueError(f"max_iterations: {max_iterations} must be >= 1")
+    if max_source_points is not None and max_source_points < MIN_CORRESPONDENCES:
+        raise ValueError(f"max_source_points: {max_source_points} must be None or >= {MIN_CORRESPONDENCES}")
     source = as_points(source, name="source", min_points=1)
     target = as_points(target, name="target", min_points=3)
     initial = check_rigid_transformation(initial, name="initial")
+    generator = np.random.default_rng(seed)
+    source = source[seeded_subset(len(source), max_source_points, generator)]
 
     # Working frame: x_w = (x - centre) / unit, the same similarity for both clouds.
     centre = target.mean(axis=0)
@@ -163,16 +217,18 @@ def icp(
     normals = None
     if method == "point_to_plane":
         if target_normals is None:
-            normals = estimate_normals(target_working)
+            normals = _TargetNormals(target_working, tree)
         else:
-            normals = np.asarray(target_normals, dtype=np.float64)
-            if normals.shape != target.shape:
-                raise ValueError(f"target_normals: shape {normals.shape}, expected {target.shape}")
+            given = np.asarray(target_normals, dtype=np.float64)
+            if given.shape != target.shape:
+                raise ValueError(f"target_normals: shape {given.shape}, expected {target.shape}")
+            normals = _GivenNormals(given)
 
     pose = to_working @ initial @ from_working
     floor = 0.0
     if adaptive:
-        spacing, _ = tree.query(target_working, k=2)
+        spaced = target_working[seeded_subset(len(target_working), max_source_points, generator)]
+        spacing, _ = tree.query(spaced, k=2)
         floor = SPACING_MULTIPLE * float(np.median(spacing[:, 1]))
     stage_distance, iterations, stop_reason = 1.0, 0, "max_iterations"
     for _ in range(MAX_STAGES if adaptive else 1):
@@ -206,11 +262,21 @@ def icp(
     )
 
 
+class _GivenNormals:
+    """Normals the caller computed, read like :class:`_TargetNormals`."""
+
+    def __init__(self, normals: np.ndarray):
+        self.normals = normals
+
+    def at(self, index: np.ndarray) -> np.ndarray:
+        return self.normals[index]
+
+
 def _icp_stage(
     source: np.ndarray,
     target: np.ndarray,
     tree: KDTree,
-    normals: np.ndarray | None,
+    normals: "_TargetNormals | _GivenNormals | None",
     pose: np.ndarray,
     max_distance: float,
     max_iterations: int,
@@ -226,7 +292,7 @@ def _icp_stage(
         if normals is None:
             step = rigid_transform_svd(moved[close], target[index[close]])
         else:
-            step = _point_to_plane_step(moved[close], target[index[close]], normals[index[close]])
+            step = _point_to_plane_step(moved[close], target[index[close]], normals.at(index[close]))
         pose = step @ pose
         # Relative to the stage's distance, so a tighter stage converges as tightly.
         change = np.linalg.norm(Rotation.from_matrix(step[:3, :3]).as_rotvec()) + np.linalg.norm(step[:3, 3]) / max_distance

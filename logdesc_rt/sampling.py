@@ -100,6 +100,14 @@ def _farthest_point_indices_from(points: np.ndarray, count: int, start_indices: 
     return selected
 
 
+def seeded_subset(count: int, limit: int | None, generator: np.random.Generator) -> np.ndarray:
+    """Indices (ascending, int64) of a uniform random subset of ``limit`` of ``count`` items
+    drawn from ``generator``; all of them when ``limit`` is None or >= count (nothing drawn)."""
+    if limit is None or count <= limit:
+        return np.arange(count)
+    return np.sort(generator.choice(count, limit, replace=False))
+
+
 def farthest_point_sampling(points, count: int, start_index: int | None = None) -> np.ndarray:
     """Pick ``count`` well-spread points by greedy farthest-point sampling (deterministic).
 
@@ -273,8 +281,7 @@ def working_subset(
     points = as_points(points, name="points", min_points=1)
     kept = np.arange(len(points))
     if len(points) > PRESAMPLE_FACTOR * max_points:
-        draw = np.random.default_rng(len(points)).choice(len(points), PRESAMPLE_FACTOR * max_points, replace=False)
-        kept = np.sort(draw)
+        kept = seeded_subset(len(points), PRESAMPLE_FACTOR * max_points, np.random.default_rng(len(points)))
     not_stray = kept[~stray_point_mask(points[kept], normalization)]
     if len(not_stray) >= min_points:
         kept = not_stray

@@ -56,6 +56,7 @@ from .config import VERIFICATION_FEATURES, VerificationConfig
 from .config import DEFAULT_WORKING_SIZE
 from .metrics import rotation_error_deg
 from .refinement import estimate_normals, icp
+from .sampling import seeded_subset
 
 LOG_MATCH_SCALE = math.log1p(DEFAULT_WORKING_SIZE)  # the working size the bundled model was trained at
 
@@ -139,8 +140,8 @@ class PoseVerifier:
     ):
         generator = np.random.default_rng(config.seed)
         self.config = config
-        self.source = _subset(source, config.source_points, generator)
-        self.target = _subset(target, config.target_points, generator)
+        self.source = source[seeded_subset(len(source), config.source_points, generator)]
+        self.target = target[seeded_subset(len(target), config.target_points, generator)]
         self.source_matched = source_matched
         self.target_matched = target_matched
         self.confidences = confidences
@@ -290,10 +291,3 @@ class PoseVerifier:
         hypothesis' agreement and margin."""
         features = self.features(pose, hypothesis.features["agreement"], hypothesis.features["margin"])
         return logistic_confidence(features, self.config)
-
-
-def _subset(points: np.ndarray, count: int, generator: np.random.Generator) -> np.ndarray:
-    """(min(N, count), 3) seeded uniform subset of (N, 3) points, in their order."""
-    if len(points) <= count:
-        return points
-    return points[np.sort(generator.choice(len(points), count, replace=False))]

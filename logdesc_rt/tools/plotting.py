@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from ..sampling import seeded_subset
+
 DEFAULT_MAX_POINTS = 5000  # per cloud, drawn
 MAX_LINES = 150  # correspondences drawn
 
@@ -64,12 +66,6 @@ def matches_agreeing(source: np.ndarray, target: np.ndarray, transformation: np.
     return np.linalg.norm(moved - target[pairs[:, 1]], axis=1) < 2 * limit
 
 
-def _subset(count: int, limit: int, generator: np.random.Generator) -> np.ndarray:
-    if count <= limit:
-        return np.arange(count)
-    return np.sort(generator.choice(count, limit, replace=False))
-
-
 def plot_registration(
     source: np.ndarray,
     target: np.ndarray,
@@ -99,8 +95,8 @@ def plot_registration(
     target = np.asarray(target, dtype=np.float64)
     rotation, translation = transformation[:3, :3], transformation[:3, 3]
     aligned = source @ rotation.T + translation
-    source_shown = _subset(len(source), max_points, generator)
-    target_shown = _subset(len(target), max_points, generator)
+    source_shown = seeded_subset(len(source), max_points, generator)
+    target_shown = seeded_subset(len(target), max_points, generator)
     residual, _ = KDTree(target).query(aligned[source_shown], k=1)
     if result is not None:
         limit = float(result.max_correspondence_distance)
@@ -146,7 +142,7 @@ def _correspondence_panel(axes, source, target, transformation, result, limit, g
     axes.scatter(*source_centred[source_shown].T, s=1, c="tab:orange", alpha=0.3)
     axes.scatter(*target_placed[target_shown].T, s=1, c="tab:blue", alpha=0.3)
     agrees = matches_agreeing(source, target, transformation, pairs, limit)
-    drawn = _subset(len(pairs), MAX_LINES, generator)
+    drawn = seeded_subset(len(pairs), MAX_LINES, generator)
     for index in drawn:
         start, end = source_centred[pairs[index, 0]], target_placed[pairs[index, 1]]
         axes.plot(*np.stack([start, end]).T, linewidth=0.5, color="tab:green" if agrees[index] else "tab:red")
@@ -183,7 +179,7 @@ def plot_alignment(
     plt = _pyplot()
     points = np.asarray(points, dtype=np.float64)
     scan = np.asarray(scan)
-    shown = _subset(len(points), max_points, np.random.default_rng(seed))
+    shown = seeded_subset(len(points), max_points, np.random.default_rng(seed))
     figure = plt.figure(figsize=(7.5, 7.0))
     axes = figure.add_subplot(1, 1, 1, projection="3d")
     colours = len(names) if len(names) > 10 else 10

@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .plotting import _subset, matches_agreeing, registration_title
+from ..sampling import seeded_subset
+from .plotting import matches_agreeing, registration_title
 
 VIEW_SUFFIXES = (".html", ".htm")
 DEFAULT_MAX_POINTS = 20_000  # per cloud shown on the page; WebGL draws this many smoothly
@@ -101,8 +102,8 @@ def write_registration_view(
     transformation = np.asarray(transformation, dtype=np.float64)
     generator = np.random.default_rng(seed)
     aligned = source @ transformation[:3, :3].T + transformation[:3, 3]
-    source_shown = _subset(len(source), max_points, generator)
-    target_shown = _subset(len(target), max_points, generator)
+    source_shown = seeded_subset(len(source), max_points, generator)
+    target_shown = seeded_subset(len(target), max_points, generator)
     if result is not None:
         limit = float(result.max_correspondence_distance)
     else:
@@ -137,7 +138,7 @@ def write_registration_view(
         add(cloud(beside[source_shown], "source moved, shifted beside the target", "#ff7f0e", opacity=0.4),
             "matches")
         agrees = matches_agreeing(source, target, transformation, pairs, limit)
-        drawn = _subset(len(pairs), MAX_MATCH_LINES, generator)
+        drawn = seeded_subset(len(pairs), MAX_MATCH_LINES, generator)
         for wanted, name, colour in ((True, "agree with the pose", "#2ca02c"), (False, "disagree", "#d62728")):
             chosen = drawn[agrees[drawn] == wanted]
             count = int(np.count_nonzero(agrees == wanted))
@@ -187,7 +188,7 @@ def write_alignment_view(
         points = np.asarray(scans[index], dtype=np.float64)
         pose = result.poses[result.names[index]]
         moved = points @ pose[:3, :3].T + pose[:3, 3]
-        shown = _subset(len(moved), per_scan, generator)
+        shown = seeded_subset(len(moved), per_scan, generator)
         centres[index] = moved.mean(axis=0)
         name = Path(result.names[index]).name + (" (reference)" if result.names[index] == result.reference else "")
         traces.append(go.Scatter3d(
