@@ -507,3 +507,17 @@ def test_the_consistency_core_holds_where_most_matches_are_wrong():
     assert rotation_error_deg(pose[:3, :3], truth) < 1.0
     assert rotation_error_deg(fsr(source, target, confidences).transformation[:3, :3], truth) > 5.0
     np.testing.assert_array_equal(pose, consistency_pose(source, target, confidences, noise_bound=0.05))
+
+
+def test_hypothesis_residuals_are_the_squared_distances_after_each_pose():
+    """The batched residuals (one matrix product for all hypotheses) against the definition."""
+    from logdesc_rt.pose.svd import correspondence_residuals_squared
+
+    rng = np.random.default_rng(0)
+    rotations = Rotation.random(5, random_state=1).as_matrix()
+    translations = rng.normal(size=(5, 3))
+    source, target = rng.normal(size=(40, 3)), rng.normal(size=(40, 3))
+    expected = np.array([[np.sum((r @ x + t - y) ** 2) for x, y in zip(source, target, strict=True)]
+                         for r, t in zip(rotations, translations, strict=True)])
+    np.testing.assert_allclose(correspondence_residuals_squared(rotations, translations, source, target), expected,
+                               rtol=1e-12, atol=1e-12)

@@ -198,3 +198,30 @@ def test_voxel_property_random_input(points, voxel_size):
         return
     assert 1 <= len(indices) <= len(points)
     assert np.all(np.diff(indices) > 0)
+
+
+@pytest.mark.parametrize("case", ["random", "lattice ties", "duplicates"])
+def test_fps_from_several_starts_is_each_single_run(case):
+    """FSR samples its rounds in one loop; row r must be exactly the run from start r."""
+    from logdesc_rt.sampling import _farthest_point_indices, _farthest_point_indices_from
+
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(300, 3))
+    if case == "lattice ties":
+        points = np.round(points * 2.0) / 2.0
+    elif case == "duplicates":
+        points[:150] = points[0]
+    starts = rng.integers(0, len(points), size=7)
+    together = _farthest_point_indices_from(points, 60, starts)
+    for row, start in zip(together, starts, strict=True):
+        np.testing.assert_array_equal(row, _farthest_point_indices(points, 60, int(start)))
+
+
+def test_seeded_subset_is_all_points_below_the_limit_and_a_sorted_draw_above():
+    from logdesc_rt.sampling import seeded_subset
+
+    np.testing.assert_array_equal(seeded_subset(5, 10, np.random.default_rng(0)), np.arange(5))
+    np.testing.assert_array_equal(seeded_subset(5, None, np.random.default_rng(0)), np.arange(5))
+    drawn = seeded_subset(1000, 100, np.random.default_rng(3))
+    assert len(np.unique(drawn)) == 100 and np.all(np.diff(drawn) > 0)
+    np.testing.assert_array_equal(drawn, seeded_subset(1000, 100, np.random.default_rng(3)))

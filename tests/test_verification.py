@@ -139,7 +139,7 @@ def test_runtime_config_round_trips_and_merges_partial_dicts():
     with pytest.raises(ValueError, match="resolve"):  # verification None: the model's, unknown here
         config.with_seed(7)
     seeded = dataclasses.replace(config, verification=VerificationConfig()).with_seed(7)
-    assert seeded.fsr.seed == seeded.ransac.seed == seeded.verification.seed == 7
+    assert seeded.fsr.seed == seeded.ransac.seed == seeded.verification.seed == seeded.refinement.seed == 7
 
 
 def _model_copy(tmp_path, runtime: dict):
