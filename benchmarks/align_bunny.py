@@ -29,8 +29,8 @@ Methods, all on the full scans (30k-40k points each), all 45 pairs:
   0.25). Voxel: 2.5 % of the mean scan radius, with the tutorial's multipliers (normals 2x,
   FPFH 5x, RANSAC and ICP distance 1.5x): chosen once, not tuned on these scans.
 
-Wall times are of this run on a shared 2-core machine (a training job ran beside it):
-indicative only. Writes ``<out>/align_bunny.{md,json}`` and ``<out>/align_bunny.png`` (the
+Wall times are of this run on the 2-core machine, with whatever else ran beside it (the report
+does not know): indicative only. Writes ``<out>/align_bunny.{md,json}`` and ``<out>/align_bunny.png`` (the
 merged clouds coloured by scan).
 """
 
@@ -284,8 +284,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Command: `{command_line()}`. Scan order (shuffled, seed {args.seed}): {', '.join(names)}; "
         "reference (identity): " + ", ".join(f"{label} {m['reference']}" for label, m in methods.items())
         + ". Truth from `bun.conf`; no initial poses. Goal of issue 14: "
-        f"every scan within {GOAL_DEG:g} degree and {GOAL_MM:g} mm. Shared 2-core machine (a training job ran "
-        "beside it): times are indicative. " + open3d_note,
+        f"every scan within {GOAL_DEG:g} degree and {GOAL_MM:g} mm. Wall times: this run on a 2-core machine, "
+        "with whatever else ran beside it: indicative only. " + open3d_note,
         "",
         "| method | connected scans (of 9) | within 1 deg & 1 mm | within 5 deg & 5 mm | rotation error median / max (deg) "
         "| translation error median / max (mm) | pairs kept (of 45) | wall time (s) |",

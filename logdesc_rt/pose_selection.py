@@ -19,6 +19,7 @@ from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
 from .refinement import refine_pose
 from .results import RegistrationResult
+from .threads import one_thread_per_caller
 from .timing import timed
 from .verification import PoseVerifier
 
@@ -45,7 +46,7 @@ def register_matched(
     """
     report = report if report is not None else (lambda message: None)
     timings = dict(pair.timings)
-    with timed(timings, "pose"):
+    with timed(timings, "pose"), one_thread_per_caller():
         candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES else []
         if initial is not None:
             candidates.append(("init", initial))
@@ -70,7 +71,7 @@ def register_matched(
         f"verifying {len(candidates)} candidate poses on the full clouds "
         f"({len(pair.source_points)} x {len(pair.target_points)} points)"
     )
-    with timed(timings, "verification"):
+    with timed(timings, "verification"), one_thread_per_caller():
         correspondences = pair.correspondences
         verifier = PoseVerifier(
             pair.source_points,

@@ -38,7 +38,7 @@ import numpy as np
 
 from .config import REFINEMENT_METHODS, RefinementConfig, RuntimeConfig, SubsamplingConfig
 from .config_resolution import UNSET, ConfigResolver
-from .geometry import compute_geometry
+from .geometry import PointGeometry, compute_geometry
 from .io import input_points
 from .matching import sinkhorn_matches
 from .network import OnnxNetwork
@@ -48,6 +48,7 @@ from .pose.evaluation import check_rigid_transformation
 from .pose_selection import register_matched
 from .results import Descriptors, RegistrationResult  # noqa: F401 (re-exported)
 from .sampling import working_subset
+from .threads import one_thread_per_caller
 from .timing import timed
 from .validation import as_points, check_not_degenerate
 
@@ -242,7 +243,7 @@ class Registrar:
                 network_source,
                 network_target,
             )
-        with timed(timings, "matching"):
+        with timed(timings, "matching"), one_thread_per_caller():
             matches = sinkhorn_matches(
                 scores,
                 self.manifest.dustbin_score,
@@ -271,6 +272,10 @@ class Registrar:
         with timed(timings, "load"):
             source_points = self._load(source, "source")
             target_points = self._load(target, "target")
+        with one_thread_per_caller():  # the stray test's and the sampling's kNN too (threads.py)
+            return self._prepare_loaded(source_points, target_points, timings)
+
+    def _prepare_loaded(self, source_points: np.ndarray, target_points: np.ndarray, timings: dict) -> PreparedPair:
         with timed(timings, "subsample"):
             source_index = self._working_subset(source_points)
             target_index = self._working_subset(target_points)
@@ -280,10 +285,11 @@ class Registrar:
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
         with timed(timings, "geometry"):
-            # The two clouds concurrently: kNN, eigen-solver and matrix products release the GIL.
+            # The two clouds concurrently: kNN, eigen-solver and matrix products release the GIL;
+            # each thread's libraries on that one thread (threads.py: no four threads on two cores).
             with ThreadPoolExecutor(max_workers=2) as pool:
-                source_job = pool.submit(compute_geometry, network_source, self.manifest.geometry)
-                target_geometry = compute_geometry(network_target, self.manifest.geometry)
+                source_job = pool.submit(_geometry_on_one_thread, network_source, self.manifest.geometry)
+                target_geometry = _geometry_on_one_thread(network_target, self.manifest.geometry)
                 source_geometry = source_job.result()
         return PreparedPair(
             source_points=source_points,
@@ -344,6 +350,12 @@ class Registrar:
 
 
 _DEFAULT_REGISTRAR: Registrar | None = None
+
+
+def _geometry_on_one_thread(points: np.ndarray, config) -> PointGeometry:
+    """compute_geometry in a worker thread, its libraries on that one thread (see threads.py)."""
+    with one_thread_per_caller():
+        return compute_geometry(points, config)
 
 
 def _default_registrar() -> Registrar:
