@@ -113,3 +113,30 @@ def test_icp_on_a_source_subset_lands_where_the_whole_cloud_does(scan_pair, shar
     assert np.linalg.norm(moved(subset.transformation) - moved(whole.transformation)) < 2e-4
     with pytest.raises(ValueError, match="max_source_points"):
         icp(full_source, target, start, 0.005, max_source_points=2)
+
+
+@pytest.mark.parametrize("steps, stops_after", [((1, -1), 2), ((1, 1, -2), 3)])
+def test_icp_stops_when_its_pose_comes_back(monkeypatch, steps, stops_after):
+    """A stage whose updates go round (correspondences flipping between sets, as on source subsets
+    of real scans) stops once the pose is back where it was, instead of running out of
+    iterations; a sequence that does not come back runs on."""
+    from pykdtree.kdtree import KDTree
+
+    import logdesc_rt.refinement as refinement
+
+    turn = Rotation.from_rotvec([0.0, 0.0, 1e-3])
+    updates = iter([s for _ in range(20) for s in steps])
+
+    def scripted_step(source, target, normals):
+        step = np.eye(4)
+        step[:3, :3] = (turn ** next(updates)).as_matrix()
+        return step
+
+    monkeypatch.setattr(refinement, "_point_to_plane_step", scripted_step)
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    normals = refinement._GivenNormals(np.tile([0.0, 0.0, 1.0], (50, 1)))
+    _, iterations, reason = refinement._icp_stage(points, points, KDTree(points), normals, np.eye(4), 10.0, 30, 1e-7)
+    assert (iterations, reason) == (stops_after, "cycle")
+    updates = iter([1] * 40)  # always the same way: never back
+    _, iterations, reason = refinement._icp_stage(points, points, KDTree(points), normals, np.eye(4), 10.0, 30, 1e-7)
+    assert (iterations, reason) == (30, "max_iterations")
