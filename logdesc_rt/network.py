@@ -212,8 +212,9 @@ class OnnxNetwork:
         options.enable_mem_pattern = False
         # Denormal floats. Attention logits ~90 below their row's maximum give softmax terms in
         # float32's denormal range, which x86 cores process ~100x slower; v4's distance-biased
-        # heads have ~5 % such entries, and with them the networks took twice as long (1024
-        # points: descriptor 88 -> 44 ms, matcher 122 -> 74 ms per call once flushed). Flushing
+        # heads have ~5 % such entries (one attention node: 27 ms with them, 6 ms flushed). At
+        # 1024 points, alternating processes, the descriptors of both clouds took 155 -> 93 ms
+        # and the matcher 110 -> 99 ms once flushed (benchmarks/results/runtime_ab.md). Flushing
         # them to zero (FTZ/DAZ) changes no value above 1e-38. onnxruntime sets the mode on each
         # session's pool threads, and once per process (the first session only) on the thread
         # that creates it; so every session is created and run on one thread of this module's
@@ -224,6 +225,7 @@ class OnnxNetwork:
                 raise ValueError(f"threads: {threads} < 1")
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1
+
         def load(name: str):
             return onnxruntime.InferenceSession(str(self.model_dir / name), options, providers=["CPUExecutionProvider"])
 

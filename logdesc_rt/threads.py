@@ -8,8 +8,9 @@ the two clouds, computed in two Python threads, ran four library threads on two 
 stages from the working subsets to the verified pose therefore run their array work on one
 thread per Python thread (:func:`one_thread_per_caller`); the stages on the full clouds (ICP,
 the fitness evaluation), where a query covers 10^4 - 10^5 points, keep the libraries' own
-counts. Measured on the 2-core machine (1024 points, ``benchmarks/results/latency_v4.md``):
-the stages around the networks fell from 159-167 to 104-127 ms with every library on one thread.
+counts. Measured on the 2-core machine, 1024-point pair of ``benchmarks/latency.py``, three
+alternating rounds of fresh processes, this limit on and off: verification 49-72 against
+87-94 ms; geometry and Sinkhorn the same within the machine's drift.
 
 threadpoolctl (BSD-3, the scikit-learn team's) finds the libraries loaded in the process and sets
 and restores their counts; onnxruntime's own thread pools are not among them and keep their
