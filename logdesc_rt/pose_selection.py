@@ -105,34 +105,46 @@ def register_matched(
         # The returned pose is the estimator's own: right only if it is close to the
         # alignment verification found from it.
         confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
-    with timed(timings, "evaluation"):
-        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, refined)
-    timings["total"] = sum(timings.values())
     success = bool(confidence >= config.verification.success_threshold)
-
-    return RegistrationResult(
-        transformation=refined,
-        correspondences=correspondences,
-        confidences=pair.matches.confidence,
-        fitness=evaluation.fitness,
-        inlier_rmse=evaluation.inlier_rmse,
-        max_correspondence_distance=distance,
+    return _judged_result(
+        pair, config, timings, distance, refined,
         pose_estimator=chosen_estimator,
         refinement=refinement.method,
         transformation_before_refinement=pose,
-        subsampled=pair.subsampled,
-        source_points_used=len(pair.source_index),
-        target_points_used=len(pair.target_index),
-        timings=timings,
         icp=icp_result,
         success=success,
         confidence=float(confidence),
         verification=verification,
-        config=config,
         reason=None if success else (
             f"not verified: confidence {confidence:.3f} is below the success threshold "
             f"{config.verification.success_threshold:.3f}"
         ),
+    )
+
+
+def _judged_result(
+    pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], distance: float,
+    transformation: np.ndarray, **outcome,
+) -> RegistrationResult:
+    """The result of ``pair`` with its returned ``transformation``: fitness and inlier RMSE on
+    the full clouds at ``distance``, the total time, and what every result says of the pair;
+    ``outcome`` holds the rest (estimator, refinement, the flag and its reason)."""
+    with timed(timings, "evaluation"):
+        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, transformation)
+    timings["total"] = sum(timings.values())
+    return RegistrationResult(
+        transformation=transformation,
+        correspondences=pair.correspondences,
+        confidences=pair.matches.confidence,
+        fitness=evaluation.fitness,
+        inlier_rmse=evaluation.inlier_rmse,
+        max_correspondence_distance=distance,
+        subsampled=pair.subsampled,
+        source_points_used=len(pair.source_index),
+        target_points_used=len(pair.target_index),
+        timings=timings,
+        config=config,
+        **outcome,
     )
 
 
@@ -147,27 +159,13 @@ def unregistered_result(
     pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], reason: str
 ) -> RegistrationResult:
     """The result of a valid pair no pose could be estimated for: the identity, judged a failure."""
-    distance = correspondence_distance(pair, config)
     identity = np.eye(4)
-    with timed(timings, "evaluation"):
-        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, identity)
-    timings["total"] = sum(timings.values())
-    return RegistrationResult(
-        transformation=identity,
-        correspondences=pair.correspondences,
-        confidences=pair.matches.confidence,
-        fitness=evaluation.fitness,
-        inlier_rmse=evaluation.inlier_rmse,
-        max_correspondence_distance=distance,
+    return _judged_result(
+        pair, config, timings, correspondence_distance(pair, config), identity,
         pose_estimator="none",
         refinement=None,
         transformation_before_refinement=identity,
-        subsampled=pair.subsampled,
-        source_points_used=len(pair.source_index),
-        target_points_used=len(pair.target_index),
-        timings=timings,
         success=False,
         confidence=0.0,
-        config=config,
         reason=reason,
     )

@@ -86,18 +86,22 @@ class IcpResult:
         }
 
 
-def estimate_normals(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+def estimate_normals(
+    points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None
+) -> np.ndarray:
     """(N, 3) unit normals: the least-variance axis of each point's ``neighbours`` nearest.
 
     Args:
         points: (N, 3) float64, N >= 3; centre and scale them first for accuracy far away
             from the origin (covariances are taken about each neighbourhood's mean anyway).
         neighbours: k, the point itself included (capped at N).
+        tree: a k-d tree of ``points`` the caller already has (built here otherwise).
 
     Returns:
         (N, 3) float64 unit vectors; their sign is arbitrary (point-to-plane does not care).
     """
-    return _TargetNormals(points, KDTree(points), neighbours).at(np.arange(len(points)))
+    tree = KDTree(points) if tree is None else tree
+    return _TargetNormals(points, tree, neighbours).at(np.arange(len(points)))
 
 
 def refine_pose(source, target, initial: np.ndarray, max_distance: float, config) -> IcpResult:

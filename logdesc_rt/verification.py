@@ -146,12 +146,13 @@ class PoseVerifier:
         self.target_matched = target_matched
         self.confidences = confidences
         self.distance = config.distance_fraction * scale
-        spacing, _ = KDTree(self.target).query(self.target, k=2)
+        # One tree of the scored target serves the spacing, every pose's query and its normals.
+        self.target_tree = KDTree(self.target)
+        spacing, _ = self.target_tree.query(self.target, k=2)
         self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
         self.match_tolerance = config.match_tolerance * scale
         self.centre = self.source.mean(axis=0)
-        self.target_tree = KDTree(self.target)
-        self.target_normals = estimate_normals(self.target)
+        self.target_normals = estimate_normals(self.target, tree=self.target_tree)
         self.source_normals = estimate_normals(self.source)
         # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).
         _, axes = np.linalg.eigh(np.cov((self.source - self.centre).T))
