@@ -135,12 +135,7 @@ def run_open3d(case: str, threads: int) -> dict:
         registration.RANSACConvergenceCriteria(100000, 0.999),
     )
     coarse_seconds = time.perf_counter() - started
-    full_target = clouds[1][0]
-    full_target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-    refined = registration.registration_icp(
-        clouds[0][0], full_target, 0.05 * scale, coarse.transformation,
-        registration.TransformationEstimationPointToPlane(), registration.ICPConvergenceCriteria(max_iteration=30),
-    )
+    refined = open3d_point_to_plane(clouds[0][0], clouds[1][0], coarse.transformation, scale)
     seconds = time.perf_counter() - started
     centroid = np.append(source.mean(axis=0), 1.0)
     rows = []
@@ -157,6 +152,21 @@ def run_open3d(case: str, threads: int) -> dict:
     return {"open3d": rows}
 
 
+def open3d_point_to_plane(source_cloud, target_cloud, start: np.ndarray, scale: float):
+    """Open3D's point-to-plane ICP on full clouds as both Open3D rows run it: target normals from
+    the 30 nearest within twice the voxel, 5 % of the radius ``scale`` as the distance (what
+    ``register(refine=...)`` uses), 30 iterations. Returns Open3D's registration result."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    voxel = OPEN3D_VOXEL_FRACTION * scale
+    target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    return registration.registration_icp(
+        source_cloud, target_cloud, 0.05 * scale, start,
+        registration.TransformationEstimationPointToPlane(), registration.ICPConvergenceCriteria(max_iteration=30),
+    )
+
+
 def open3d_icp_placement_check(case: str = "merged_70k") -> list[dict]:
     """Open3D's point-to-plane ICP from the truth turned 1 degree (about the target's centroid),
     on the case's clouds where they are (1 km from the origin) and moved back to the origin:
@@ -164,7 +174,6 @@ def open3d_icp_placement_check(case: str = "merged_70k") -> list[dict]:
     import open3d as o3d
     from logdesc_rt.metrics import rotation_error_deg
 
-    registration = o3d.pipelines.registration
     source, target, truth = build_case(case)
     checks = []
     for label, offset in (("at the origin", -np.full(3, FAR_AWAY_M)), ("1 km from the origin", np.zeros(3))):
@@ -178,14 +187,8 @@ def open3d_icp_placement_check(case: str = "merged_70k") -> list[dict]:
         about, back = np.eye(4), np.eye(4)
         about[:3, 3], back[:3, 3] = moved_target.mean(axis=0), -moved_target.mean(axis=0)
         start = about @ turn @ back @ moved_truth
-        target_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved_target))
-        voxel = OPEN3D_VOXEL_FRACTION * scale
-        target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-        result = registration.registration_icp(
-            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved_source)), target_cloud, 0.05 * scale, start,
-            registration.TransformationEstimationPointToPlane(), registration.ICPConvergenceCriteria(max_iteration=30),
-        )
-        pose = np.asarray(result.transformation)
+        cloud = lambda points: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))  # noqa: E731
+        pose = np.asarray(open3d_point_to_plane(cloud(moved_source), cloud(moved_target), start, scale).transformation)
         checks.append({"case": case, "placement": label,
                        "rotation_error_deg": float(rotation_error_deg(pose[:3, :3], moved_truth[:3, :3]))})
     return checks

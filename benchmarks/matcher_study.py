@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 from common import command_line, machine_info, write_report  # noqa: E402
+from methods import mutual_nearest_descriptors  # noqa: E402
 from scan_pairs import scan_pairs, shape_pairs  # noqa: E402
 
 from logdesc_rt import Registrar  # noqa: E402
@@ -47,13 +48,14 @@ SUCCESS_DEG, SUCCESS_FRACTION = 5.0, 0.05
 
 
 def descriptor_matches(source_descriptors: np.ndarray, target_descriptors: np.ndarray) -> Matches:
-    """Mutual nearest neighbours of (N, d) / (M, d) unit descriptors; confidence = cosine."""
-    similarity = source_descriptors @ target_descriptors.T
-    best_target = similarity.argmax(axis=1)
-    best_source = similarity.argmax(axis=0)
-    source_index = np.flatnonzero(best_source[best_target] == np.arange(len(source_descriptors)))
-    target_index = best_target[source_index]
-    confidence = np.clip(similarity[source_index, target_index].astype(np.float64), 1e-6, 1.0)
+    """Mutual nearest neighbours of (N, d) / (M, d) unit descriptors (the benchmarks' one
+    reading, ``methods.mutual_nearest_descriptors``: nearest in distance is most similar for
+    unit vectors); confidence = their cosine."""
+    assignment = mutual_nearest_descriptors(source_descriptors, target_descriptors)
+    source_index = np.flatnonzero(assignment >= 0)
+    target_index = assignment[source_index]
+    cosine = np.sum(source_descriptors[source_index] * target_descriptors[target_index], axis=1)
+    confidence = np.clip(cosine.astype(np.float64), 1e-6, 1.0)
     return Matches(source_index=source_index.astype(np.int64), target_index=target_index.astype(np.int64),
                    confidence=confidence)
 
