@@ -271,3 +271,7 @@ PRESETS: dict[str, ModelConfig] = {
 # v4: v3's sizes reading the chiral edge layout (13 channels: v3's 11 and two that change sign
 # under a reflection), so that v3's weights warm-start it (training.train --init-from).
 PRESETS["v4"] = PRESETS["v3"].replace(edge_channels=EDGE_CHANNELS["chiral"])
+# v4 without the transformer: the matcher network is the final d -> d map alone, so the scores
+# are a learned bilinear form of the descriptors (issue #23: does the matcher earn its cost on
+# scans?). Its descriptor is v4's, so v4's weights warm-start it (--init-from, --init-skip).
+PRESETS["v4_descriptor"] = PRESETS["v4"].replace(transformer_layers=0)

@@ -266,9 +266,17 @@ class InvariantDescriptor(nn.Module):
         return F.normalize(self.projection(features), dim=-1)
 
 
+DESCRIPTOR_ONLY_TEMPERATURE = 0.1
+"""Score per unit of descriptor cosine, inverted, at the start of a descriptor-only model
+(``transformer_layers == 0``); the default ``--infonce-temperature`` of training."""
+
+
 class InvariantTransformer(nn.Module):
     """``transformer_layers`` pairs of (geometric self, bidirectional cross) layers at width d,
-    then a final linear d -> d (the normal-encoder transformer's role, made invariant)."""
+    then a final linear d -> d (the normal-encoder transformer's role, made invariant).
+
+    With no layers the network matches by its descriptors alone: the final linear map is then
+    all that stands between the descriptors and the scores."""
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
@@ -280,6 +288,15 @@ class InvariantTransformer(nn.Module):
             BidirectionalCrossLayer(dim, heads) for _ in range(config.transformer_layers)
         )
         self.projection = nn.Linear(dim, dim)
+        if config.transformer_layers == 0:
+            # Descriptor-only matching (the scores are a learned bilinear form of the unit
+            # descriptors): start at s I with s^2 / sqrt(d) = 1 / DESCRIPTOR_ONLY_TEMPERATURE, so
+            # that the first scores are the cosines over the auxiliary InfoNCE's temperature. A
+            # random d x d start gives scores ~0.1 that Sinkhorn spreads flat over all points.
+            scale = math.sqrt(math.sqrt(dim) / DESCRIPTOR_ONLY_TEMPERATURE)
+            with torch.no_grad():
+                self.projection.weight.copy_(scale * torch.eye(dim))
+                self.projection.bias.zero_()
 
     def forward(
         self,

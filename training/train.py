@@ -121,6 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a fresh run (step 0, new Adam) starting from this checkpoint's weights; edge channels "
                           "the checkpoint lacks (v3 -> v4's chiral layout) get zero weights, so the network's "
                           "function is unchanged at step 0 (ignored when resuming)")
+    run.add_argument("--init-skip", action="append", default=[], metavar="PREFIX",
+                     help="with --init-from: parameters whose names start with PREFIX keep this network's own "
+                          "initialisation (e.g. 'transformer.' when the transformer's shape or role changed); "
+                          "may be repeated")
     run.add_argument("--seed", type=int, default=0, help="model init, data and sampler seed")
     run.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
                      help="auto = cuda when available")
@@ -512,7 +516,10 @@ def start_run(args) -> TrainingRun:
     seed_everything(args.seed)
     model = LoGDescMatcher(model_config).to(device)
     if checkpoint is None and args.init_from is not None:
-        warm_start(model, torch.load(args.init_from, map_location="cpu", weights_only=False)["model"])
+        warm_start(
+            model, torch.load(args.init_from, map_location="cpu", weights_only=False)["model"],
+            skip=tuple(args.init_skip),
+        )
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, args))
     progress = Progress() if checkpoint is None else _restore(checkpoint, model, optimizer, scheduler, args)
@@ -543,15 +550,17 @@ def start_run(args) -> TrainingRun:
     return run
 
 
-def warm_start(model: LoGDescMatcher, state: dict) -> None:
+def warm_start(model: LoGDescMatcher, state: dict, skip: tuple[str, ...] = ()) -> None:
     """Load ``state`` into ``model``; a tensor wider than its saved one along the input
     channels (the first edge convolution, when the edge layout gained channels) takes the
     saved weights in its first columns and zeros in the rest, so the function is unchanged.
+    Parameters whose names start with a prefix in ``skip`` keep the model's own values; saved
+    parameters the model lacks (the transformer's layers, for a descriptor-only model) are unused.
 
     Raises:
         ValueError: a parameter is missing, or differs in another way than that.
     """
-    own = model.state_dict()
+    own = {name: tensor for name, tensor in model.state_dict().items() if not name.startswith(skip)}
     missing = sorted(set(own) - set(state))
     if missing:
         raise ValueError(f"--init-from: the checkpoint lacks {missing[:5]}")
