@@ -313,6 +313,51 @@ def test_v3_attention_fast_paths_equal_the_explicit_softmax_with_gradients():
     torch.testing.assert_close(new_target, layer.update(target, target_message), rtol=1e-5, atol=1e-5)
 
 
+def test_folded_edge_convolutions_equal_the_layers_as_trained():
+    """The export's edge convolutions with GroupNorm folded in (moments of the input, one
+    product per layer) compute what Conv -> GroupNorm -> ReLU -> max over k computes, for each
+    pair of a batch with its own statistics and with learned (non-unit) norm parameters."""
+    from training.layers import edge_convolutions, folded_edge_convolutions
+
+    torch.manual_seed(3)
+    config = PRESETS["v4"]
+    local = edge_convolutions(config).eval()
+    with torch.no_grad():
+        for module in local:
+            if isinstance(module, torch.nn.GroupNorm):
+                module.weight.uniform_(-2.0, 2.0)  # a negative scale: max over k does not commute
+                module.bias.uniform_(-1.0, 1.0)
+    generator = torch.Generator().manual_seed(4)
+    edges = torch.randn(2, 200, 30, config.edge_channels, generator=generator)
+    edges[1] = 3.0 * edges[1] + 2.0  # the second pair's own mean and spread
+    with torch.no_grad():
+        expected = local(edges.permute(0, 3, 1, 2)).amax(dim=3).transpose(1, 2)
+        folded = folded_edge_convolutions(local, edges)
+    assert folded.shape == expected.shape == (2, 200, config.attention_width)
+    torch.testing.assert_close(folded, expected, rtol=1e-4, atol=1e-4)
+    # Pair by pair: the statistics are each pair's own, not the batch's.
+    with torch.no_grad():
+        alone = folded_edge_convolutions(local, edges[1:])
+    torch.testing.assert_close(alone, folded[1:], rtol=1e-5, atol=1e-5)
+
+
+def test_descriptor_only_preset_starts_with_cosine_scores_over_the_temperature():
+    """v4_descriptor has no transformer layers, and its first scores are the descriptors'
+    cosines over DESCRIPTOR_ONLY_TEMPERATURE (a random d x d map would give scores ~0.1)."""
+    from training.invariant_model import DESCRIPTOR_ONLY_TEMPERATURE
+
+    config = PRESETS["v4_descriptor"]
+    assert config.transformer_layers == 0 and config.descriptor_dim == PRESETS["v4"].descriptor_dim
+    model = LoGDescMatcher(config).eval()
+    generator = torch.Generator().manual_seed(5)
+    src = F.normalize(torch.randn(1, 40, config.descriptor_dim, generator=generator), dim=-1)
+    tgt = F.normalize(torch.randn(1, 30, config.descriptor_dim, generator=generator), dim=-1)
+    normals_src, normals_tgt = F.normalize(torch.randn(1, 40, 3), dim=-1), F.normalize(torch.randn(1, 30, 3), dim=-1)
+    with torch.no_grad():
+        scores = model.match_scores(src, tgt, normals_src, normals_tgt, torch.randn(1, 40, 3), torch.randn(1, 30, 3))
+    torch.testing.assert_close(scores, src @ tgt.transpose(1, 2) / DESCRIPTOR_ONLY_TEMPERATURE, rtol=1e-5, atol=1e-5)
+
+
 def test_transformer_runs_on_2048_points():
     """2048 points per cloud, twice the working size (its speed: benchmarks/latency.py)."""
     generator = torch.Generator().manual_seed(6)

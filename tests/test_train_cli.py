@@ -403,3 +403,27 @@ def test_warm_start_into_a_wider_edge_layout_keeps_the_function():
     wrong = {**old.state_dict(), "dustbin_score": torch.zeros(3)}
     with pytest.raises(ValueError, match="dustbin_score"):
         warm_start(new, wrong)
+
+
+def test_warm_start_into_a_descriptor_only_network_skips_the_transformer():
+    """--init-from a full network into one without transformer layers, --init-skip 'transformer.':
+    the descriptor is copied, the final map keeps its own start (s I), and the saved transformer
+    layers the new network lacks are not asked for."""
+    from training.config import ModelConfig
+    from training.model import LoGDescMatcher
+    from training.train import warm_start
+
+    torch.manual_seed(0)
+    config = ModelConfig.preset("tiny_v3")
+    full = LoGDescMatcher(config)
+    alone = LoGDescMatcher(config.replace(transformer_layers=0))
+    own_projection = alone.transformer.projection.weight.detach().clone()
+    warm_start(alone, full.state_dict(), skip=("transformer.",))
+    for name, tensor in alone.descriptor.state_dict().items():
+        assert torch.equal(tensor, full.descriptor.state_dict()[name]), name
+    assert torch.equal(alone.transformer.projection.weight, own_projection)
+    assert torch.equal(alone.dustbin_score, full.dustbin_score)
+    # Without the skip the saved projection (trained after the layers) is copied.
+    warm_start(alone, full.state_dict())
+    assert torch.equal(alone.transformer.projection.weight, full.transformer.projection.weight)
+

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ModelConfig
-from .layers import edge_convolutions, merge_heads, split_heads
+from .layers import edge_convolutions, folded_edge_convolutions, merge_heads, split_heads
 
 
 def _monomials(power: int) -> tuple[list[tuple[int, int, int]], torch.Tensor]:
@@ -259,7 +259,12 @@ class InvariantDescriptor(nn.Module):
 
     def forward(self, edges: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
         """edges (B, N, k, C), points (B, N, 3), normals (B, N, 3) -> (B, N, d) unit-norm descriptors."""
-        features = self.local(edges.permute(0, 3, 1, 2)).amax(dim=3).transpose(1, 2)  # (B, N, W)
+        if torch.onnx.is_in_onnx_export():
+            # The same function with the GroupNorms folded into the convolutions: fewer passes
+            # over the (B, N, k, W) tensor in onnxruntime (training.layers.folded_edge_convolutions).
+            features = folded_edge_convolutions(self.local, edges)  # (B, N, W)
+        else:
+            features = self.local(edges.permute(0, 3, 1, 2)).amax(dim=3).transpose(1, 2)  # (B, N, W)
         distance_parts, normal_parts = geometric_parts(points, normals)
         for layer in self.layers:
             features = layer(features, distance_parts, normal_parts)
