@@ -163,8 +163,10 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
         with torch.no_grad():
             t_desc_src = model.describe(*(torch.from_numpy(describe_src[name]) for name in model.describe_inputs))
             t_desc_tgt = model.describe(*(torch.from_numpy(describe_tgt[name]) for name in model.describe_inputs))
-        o_desc_src = describe.run(None, {name: describe_src[name] for name in model.describe_inputs})[0]
-        o_desc_tgt = describe.run(None, {name: describe_tgt[name] for name in model.describe_inputs})[0]
+        # Each graph by the inputs it kept: export drops inputs a network never reads (a
+        # descriptor-only model's matcher reads no normals and no positions).
+        o_desc_src = describe.run(None, {i.name: describe_src[i.name] for i in describe.get_inputs()})[0]
+        o_desc_tgt = describe.run(None, {i.name: describe_tgt[i.name] for i in describe.get_inputs()})[0]
         match_feeds = {
             "descriptors_source": o_desc_src, "descriptors_target": o_desc_tgt,
             "normals_source": describe_src["normals"], "normals_target": describe_tgt["normals"],
@@ -173,7 +175,7 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
         with torch.no_grad():
             # torch gets onnxruntime's descriptors too, so the scores compare the matcher alone.
             t_scores = model.match_scores(*(torch.from_numpy(match_feeds[name]) for name in model.match_inputs))
-        o_scores = match.run(None, {name: match_feeds[name] for name in model.match_inputs})[0]
+        o_scores = match.run(None, {i.name: match_feeds[i.name] for i in match.get_inputs()})[0]
         descriptor_error = max(
             np.abs(o_desc_src - t_desc_src.numpy()).max(), np.abs(o_desc_tgt - t_desc_tgt.numpy()).max()
         )
