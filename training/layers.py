@@ -48,7 +48,8 @@ def folded_edge_convolutions(local: nn.Sequential, edges: torch.Tensor) -> torch
     flat = edges.reshape(batch, positions, channels)
     x = torch.cat((flat, torch.ones_like(flat[..., :1])), dim=-1)  # (B, P, C + 1)
     modules = list(local)
-    for conv, norm in zip(modules[0::3], modules[1::3]):
+    pairs = list(zip(modules[0::3], modules[1::3]))
+    for layer, (conv, norm) in enumerate(pairs):
         weight = conv.weight[:, :, 0, 0]  # (C_out, C_in)
         width = weight.shape[0]
         weight = torch.cat((weight, torch.zeros_like(weight[:, :1])), dim=1)  # (C_out, C_in + 1)
@@ -66,8 +67,11 @@ def folded_edge_convolutions(local: nn.Sequential, edges: torch.Tensor) -> torch
         applied = torch.cat((applied, shift.unsqueeze(1)), dim=1)  # (B, C_in + 1, C_out)
         ones_column = torch.zeros_like(applied[..., :1])
         ones_column[:, -1] = 1.0
-        x = torch.relu(x @ torch.cat((applied, ones_column), dim=2))  # (B, P, C_out + 1)
-    pooled = x.reshape(batch, count, neighbours, -1).amax(dim=2)
+        x = x @ torch.cat((applied, ones_column), dim=2)  # (B, P, C_out + 1)
+        if layer < len(pairs) - 1:
+            x = torch.relu(x)
+    # ReLU is monotone, so the last one commutes with the max over k and runs on N rows, not N k.
+    pooled = torch.relu(x.reshape(batch, count, neighbours, -1).amax(dim=2))
     return pooled[..., :-1]
 
 
