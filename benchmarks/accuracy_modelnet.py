@@ -52,6 +52,7 @@ from methods import (  # noqa: E402
     ALL_METHODS,
     OPEN3D_METHODS,
     REFINED_FROM,
+    REFINEMENT_ID,
     TUNING_FILE,
     FpfhParameters,
     MethodResult,
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
     runner = MethodRunner(coarse, FpfhParameters.tuned(args.open3d_tuning), threads=args.threads,
                           model_dir=args.model_dir)
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
-                        baseline_id=runner.parameters.fingerprint())
+                        baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
 
     total = args.pairs * len(args.protocols)
     pairs = modelnet10_test_pairs(args.protocols, args.pairs, args.seed)

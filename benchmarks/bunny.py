@@ -84,6 +84,7 @@ from methods import (  # noqa: E402
     ALL_METHODS,
     OPEN3D_METHODS,
     MethodRunner,
+    REFINEMENT_ID,
     open3d_available,
     parameters_dict,
 )
@@ -616,7 +617,7 @@ def main(argv=None) -> int:
     cache_path = args.out / f"{STEM}_pairs.jsonl"
     runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
-                        baseline_id=runner.parameters.fingerprint())
+                        baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
 
     scans = load_scans()
     print(f"measuring the overlaps of {len(scans)} scans ...", file=sys.stderr)

@@ -213,14 +213,18 @@ class ResultCache:
     With ``model_id`` (:func:`bundled_model_id`), records of learned methods are stamped with
     it ("model"), and on loading those of another model (or of none) are dropped from the
     file: they are re-run, while the classical methods' records stay. ``baseline_id``
-    (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline").
+    (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline");
+    the classical rows refined by ICP (names ending in ``_icp``) are stamped with
+    ``refinement_id`` (``methods.REFINEMENT_ID``) beside it, so that they are re-run when the
+    ICP changes while the coarse rows they start from stay.
     """
 
     def __init__(self, path: Path, fresh: bool = False, model_id: str | None = None,
-                 baseline_id: str | None = None) -> None:
+                 baseline_id: str | None = None, refinement_id: str | None = None) -> None:
         self.path = Path(path)
         self.model_id = model_id
         self.baseline_id = baseline_id
+        self.refinement_id = refinement_id
         self.stale = 0  # records of another model or other baseline parameters, dropped on loading
         self.records: dict[tuple[str, int, str], dict] = {}
         packed = self.path.with_name(self.path.name + ".gz")
@@ -241,7 +245,11 @@ class ResultCache:
 
     def _stamp(self, method: str) -> tuple[str, str | None]:
         """The field a method's records are stamped with, and the value this cache wants."""
-        return ("model", self.model_id) if is_learned_method(method) else ("baseline", self.baseline_id)
+        if is_learned_method(method):
+            return "model", self.model_id
+        if method.endswith("_icp") and self.baseline_id is not None and self.refinement_id is not None:
+            return "baseline", f"{self.baseline_id}; icp {self.refinement_id}"
+        return "baseline", self.baseline_id
 
     def _is_stale(self, record: dict) -> bool:
         field, wanted = self._stamp(record["method"])

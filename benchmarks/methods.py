@@ -17,9 +17,9 @@ pose estimators on logdesc-rt's matches see the same matches:
 - ``fpfh_ransac``, ``fpfh_fgr``: Open3D FPFH with the same two Open3D estimators;
 - ``icp_point_to_plane``: Open3D point-to-plane ICP from the identity (user frame);
 - ``logdesc_fsr_icp``, ``fpfh_fgr_icp``, ``fpfh_ransac_icp``: learned and classical coarse poses,
-  each refined by the *same* ICP (the package's point-to-plane ICP, what
-  ``register(..., refine="point_to_plane")`` runs, correspondences within 5 % of the radius),
-  so the pair differs only in where ICP starts.
+  each refined by the *same* ICP (``register(..., refine="point_to_plane")``'s: the package's
+  point-to-plane ICP with its adaptive stages and source subset, correspondences within 5 % of
+  the radius), so the pair differs only in where ICP starts.
 
 Frames and units. Every descriptor-based method works in the runtime's network frame
 (:class:`logdesc_rt.normalization.PairNormalization`: each cloud centred, one shared scale that
@@ -52,8 +52,8 @@ from logdesc_rt import Registrar
 from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
 from logdesc_rt.matching import correspondences_as_array
 from logdesc_rt.normalization import PairNormalization
-from logdesc_rt.refinement import icp
-from logdesc_rt.registration import DEFAULT_DISTANCE_FRACTION
+from logdesc_rt.config import RefinementConfig
+from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
@@ -437,14 +437,21 @@ class MethodRunner:
         return MethodResult(np.asarray(result.transformation).copy(), time.perf_counter() - start)
 
 
-def refine_pose(source: np.ndarray, target: np.ndarray, coarse: np.ndarray, scale: float) -> tuple[np.ndarray, float]:
-    """(refined (4, 4) pose, seconds): the package's point-to-plane ICP from ``coarse``.
+BENCHMARK_REFINEMENT = RefinementConfig(method="point_to_plane")
+"""The ICP of every refined row: ``register(..., refine="point_to_plane")``'s configuration."""
+REFINEMENT_ID = sha256(json.dumps(BENCHMARK_REFINEMENT.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+"""Stamps the refined classical rows in the per-pair caches (benchmarks/common.ResultCache):
+records refined by another ICP are re-run from their cached coarse poses."""
 
-    Correspondences within 5 % of ``scale`` (the pair's radius, user units): the default of
-    ``logdesc_rt.register(..., refine="point_to_plane")``.
-    """
+
+def refine_pose(source: np.ndarray, target: np.ndarray, coarse: np.ndarray, scale: float) -> tuple[np.ndarray, float]:
+    """(refined (4, 4) pose, seconds): ``register(..., refine="point_to_plane")``'s ICP from
+    ``coarse`` (:func:`logdesc_rt.refinement.refine_pose`, :data:`BENCHMARK_REFINEMENT`), with
+    correspondences within 5 % of ``scale`` (the pair's radius, user units) and its adaptive
+    stages."""
     start = time.perf_counter()
-    refined = icp(source, target, coarse, DEFAULT_DISTANCE_FRACTION * scale).transformation
+    distance = BENCHMARK_REFINEMENT.distance_fraction * scale
+    refined = runtime_refine_pose(source, target, coarse, distance, BENCHMARK_REFINEMENT).transformation
     return refined, time.perf_counter() - start
 
 

@@ -52,7 +52,7 @@ from common import (  # noqa: E402
     summarize,
     write_report,
 )
-from methods import OPEN3D_METHODS, FpfhParameters, MethodRunner, open3d_available  # noqa: E402
+from methods import OPEN3D_METHODS, REFINEMENT_ID, FpfhParameters, MethodRunner, open3d_available  # noqa: E402
 
 from logdesc_rt.scan_simulation import make_scan_pair  # noqa: E402
 from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS  # noqa: E402
@@ -129,7 +129,7 @@ def main(argv=None) -> int:
     stem = f"scan_pairs_{args.split}" if args.protocol == "scan" else f"heldout_{args.protocol}_{args.split}"
     runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
-                        baseline_id=runner.parameters.fingerprint())
+                        baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
     sizes = []
     pairs = (scan_pairs(args.split, args.pairs, args.seed) if args.protocol == "scan"
              else shape_pairs(args.split, args.protocol, args.pairs, args.seed))

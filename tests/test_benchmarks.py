@@ -260,6 +260,30 @@ def test_result_cache_reruns_baselines_of_other_parameters(tmp_path):
     assert new.stale == 1 and new.has("p", 3, ["logdesc_fsr"]) and not new.has("p", 3, ["fpfh_fgr"])
 
 
+def test_result_cache_reruns_refined_baselines_of_another_icp(tmp_path):
+    """A classical row refined by ICP carries the ICP's id beside the Open3D fingerprint: another
+    ICP re-runs it, while the coarse row it starts from stays."""
+    path = tmp_path / "pairs.jsonl"
+    fingerprint = methods.FpfhParameters().fingerprint()
+    old = common.ResultCache(path, baseline_id=fingerprint, refinement_id="old-icp")
+    old.add([{**_record(2.0, 0.0, index=3), "method": "fpfh_fgr"},
+             {**_record(1.0, 0.0, index=3), "method": "fpfh_fgr_icp"}])
+    same = common.ResultCache(path, baseline_id=fingerprint, refinement_id="old-icp")
+    assert same.stale == 0 and same.has("p", 3, ["fpfh_fgr", "fpfh_fgr_icp"])
+    new = common.ResultCache(path, baseline_id=fingerprint, refinement_id=methods.REFINEMENT_ID)
+    assert new.stale == 1 and new.has("p", 3, ["fpfh_fgr"]) and not new.has("p", 3, ["fpfh_fgr_icp"])
+
+
+def test_benchmark_refinement_is_the_one_register_runs():
+    """The refined rows' ICP is register(refine="point_to_plane")'s: same method, adaptive
+    stages, source subset and distance fraction as the runtime's configuration."""
+    from logdesc_rt.config import RuntimeConfig
+    from logdesc_rt.config_resolution import with_overrides
+
+    assert methods.BENCHMARK_REFINEMENT == with_overrides(RuntimeConfig(), refine="point_to_plane").refinement
+    assert methods.BENCHMARK_REFINEMENT.adaptive
+
+
 def test_the_model_id_changes_with_the_calibration_not_with_the_provenance(tmp_path):
     """A recalibrated flag changes register()'s results, so cached learned records must go."""
     import shutil
