@@ -270,6 +270,18 @@ def test_provenance_is_derived_from_the_log_and_its_command_parses_back(trained,
     assert parsed["resume"] == str(trained / "last.pt")
 
 
+def test_training_command_repeats_an_appended_flag_once_per_value():
+    """--init-skip is action="append": the rebuilt command gives each prefix its own flag and
+    parses back to the same list."""
+    from training.provenance import training_command
+    from training.train import build_parser
+
+    command = training_command({"out": "runs/x", "init_skip": ["transformer.", "dustbin_score"]})
+    assert "--init-skip transformer. --init-skip dustbin_score" in command
+    parsed = build_parser().parse_args(command.split()[3:])
+    assert parsed.init_skip == ["transformer.", "dustbin_score"]
+
+
 def test_provenance_lists_each_invocation_with_what_it_changed():
     from training.provenance import invocations
 

@@ -69,6 +69,9 @@ def training_command(arguments: dict, **overrides) -> str:
             continue
         if action.nargs == 0:  # a switch: store_true
             words += [flag] if value else []
+        elif isinstance(value, list):  # action="append": the flag once per value
+            for item in value:
+                words += [flag, str(item)]
         else:
             words += [flag, str(value)]
     return " ".join(words)
