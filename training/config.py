@@ -275,3 +275,7 @@ PRESETS["v4"] = PRESETS["v3"].replace(edge_channels=EDGE_CHANNELS["chiral"])
 # are a learned bilinear form of the descriptors (issue #23: does the matcher earn its cost on
 # scans?). Its descriptor is v4's, so v4's weights warm-start it (--init-from, --init-skip).
 PRESETS["v4_descriptor"] = PRESETS["v4"].replace(transformer_layers=0)
+# v4 with one (geometric self + bidirectional cross) pair instead of three: a third of the
+# matcher's attention passes (issue #23: the descriptor alone lost the shape protocols, so the
+# next question is how little matcher keeps them). v4's first pair and final map warm-start it.
+PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
