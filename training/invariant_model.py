@@ -34,6 +34,7 @@ from torch import nn
 
 from .config import ModelConfig
 from .layers import edge_convolutions, folded_edge_convolutions, merge_heads, split_heads
+from .losses import INFONCE_TEMPERATURE
 
 
 def _monomials(power: int) -> tuple[list[tuple[int, int, int]], torch.Tensor]:
@@ -271,9 +272,9 @@ class InvariantDescriptor(nn.Module):
         return F.normalize(self.projection(features), dim=-1)
 
 
-DESCRIPTOR_ONLY_TEMPERATURE = 0.1
+DESCRIPTOR_ONLY_TEMPERATURE = INFONCE_TEMPERATURE
 """Score per unit of descriptor cosine, inverted, at the start of a descriptor-only model
-(``transformer_layers == 0``); the default ``--infonce-temperature`` of training."""
+(``transformer_layers == 0``): the auxiliary InfoNCE's default temperature."""
 
 
 class InvariantTransformer(nn.Module):

@@ -67,11 +67,15 @@ def assignment_nll(
     return (-total / count).mean()
 
 
+INFONCE_TEMPERATURE = 0.1
+"""Default softmax temperature of :func:`descriptor_infonce` (``--infonce-temperature``)."""
+
+
 def descriptor_infonce(
     desc_src: torch.Tensor,
     desc_tgt: torch.Tensor,
     gt_match_src: torch.Tensor,
-    temperature: float = 0.1,
+    temperature: float = INFONCE_TEMPERATURE,
     symmetric: bool = True,
 ) -> torch.Tensor:
     """Contrastive (InfoNCE) loss on the unit-norm descriptors before the transformer.

@@ -76,7 +76,7 @@ from training.data import (
     validation_keys,
 )
 from training.evaluate import evaluation_config, register_scored_batch
-from training.losses import assignment_nll, descriptor_infonce
+from training.losses import INFONCE_TEMPERATURE, assignment_nll, descriptor_infonce
 from training.model import LoGDescMatcher
 from training.run_state import (
     JsonlLog,
@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     optim.add_argument("--grad-clip", type=float, default=1.0, help="max grad norm (0 = off)")
     optim.add_argument("--aux-descriptor-loss-weight", type=float, default=0.1,
                        help="weight of InfoNCE on the pre-transformer descriptors")
-    optim.add_argument("--infonce-temperature", type=float, default=0.1)
+    optim.add_argument("--infonce-temperature", type=float, default=INFONCE_TEMPERATURE)
 
     data = parser.add_argument_group("data")
     data.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
