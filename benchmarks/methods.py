@@ -49,10 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from logdesc_rt import Registrar
+from logdesc_rt.config import RefinementConfig
 from logdesc_rt.errors import InvalidPointCloudError, RegistrationError
 from logdesc_rt.matching import correspondences_as_array
 from logdesc_rt.normalization import PairNormalization
-from logdesc_rt.config import RefinementConfig
 from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
