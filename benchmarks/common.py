@@ -176,6 +176,14 @@ def is_learned_method(method: str) -> bool:
     return method.startswith(LEARNED_METHOD_PREFIX)
 
 
+REFINED_METHOD_SUFFIX = "_icp"
+
+
+def is_refined_method(method: str) -> bool:
+    """Whether a method's pose is another method's, refined by ICP (all ``*_icp`` methods)."""
+    return method.endswith(REFINED_METHOD_SUFFIX)
+
+
 def bundled_model_id(model_dir: Path | None = None, without_calibration: bool = False) -> str:
     """A short fingerprint of what a model directory makes the runtime do (default: the
     bundled model).
@@ -214,7 +222,7 @@ class ResultCache:
     it ("model"), and on loading those of another model (or of none) are dropped from the
     file: they are re-run, while the classical methods' records stay. ``baseline_id``
     (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline");
-    the classical rows refined by ICP (names ending in ``_icp``) are stamped with
+    the classical rows refined by ICP (:func:`is_refined_method`) are stamped with
     ``refinement_id`` (``methods.REFINEMENT_ID``) beside it, so that they are re-run when the
     ICP changes while the coarse rows they start from stay.
     """
@@ -247,7 +255,7 @@ class ResultCache:
         """The field a method's records are stamped with, and the value this cache wants."""
         if is_learned_method(method):
             return "model", self.model_id
-        if method.endswith("_icp") and self.baseline_id is not None and self.refinement_id is not None:
+        if is_refined_method(method) and self.baseline_id is not None and self.refinement_id is not None:
             return "baseline", f"{self.baseline_id}; icp {self.refinement_id}"
         return "baseline", self.baseline_id
 
