@@ -225,7 +225,9 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     """Every distinct hypothesis of one cached pair: features and whether it is right."""
     from logdesc_rt.metrics import rotation_error_deg
     from logdesc_rt.normalization import PairNormalization
+    from logdesc_rt.config import RuntimeConfig
     from logdesc_rt.pose.candidates import candidate_poses
+    from logdesc_rt.pose_selection import verify_candidates
     from logdesc_rt.verification import PoseVerifier
 
     data = np.load(path)
@@ -248,7 +250,10 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
         data["source"][source_index[data["match_source"]]], data["target"][target_index[data["match_target"]]],
         data["confidence"], float(data["scale"]), config,
     )
-    verified = verifier.verify(candidates)
+    verified = verify_candidates(
+        verifier, candidates, normalization, source_matched, target_matched, data["confidence"],
+        RuntimeConfig(verification=config),
+    )
     truth, scale = data["truth"], float(data["scale"])
     rows = []
     for hypothesis in verified.hypotheses:
@@ -442,7 +447,8 @@ def fit(
 
 
 def write_calibration(model_dir: Path, fitted) -> None:
-    """Store the fitted weights, bias and threshold as the model's verification defaults."""
+    """Store the fitted weights, bias and threshold as the model's verification defaults, with
+    the second look's settings they were fitted with."""
     path = Path(model_dir) / "manifest.json"
     manifest = json.loads(path.read_text())
     runtime = manifest.setdefault("runtime", {})
@@ -452,6 +458,8 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "bias": fitted.bias,
         "success_threshold": fitted.success_threshold,
         "candidates": list(fitted.candidates),
+        "turn_over_axes": fitted.turn_over_axes,
+        "second_consensus": list(fitted.second_consensus),
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

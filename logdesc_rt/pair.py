@@ -124,7 +124,7 @@ class PairMatches:
         config = seeded(self.config if config is None else config, seed)
         self._require_matches()
         network_pose = estimate_pose(
-            estimator, *self._matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction
+            estimator, *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction
         )
         return self.normalization.pose_to_user_frame(network_pose)
 
@@ -140,11 +140,11 @@ class PairMatches:
         if config.estimator not in ("auto", *estimators):  # a user's choice outside the model's set
             estimators = (*estimators, config.estimator)
         poses = candidate_poses(
-            *self._matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction, estimators
+            *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction, estimators
         )
         return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
 
-    def _matched_network_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def matched_network_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(K, 3) source and target points of the matches in network units, and their (K,) confidences."""
         return (
             self.source_network[self.matches.source_index],

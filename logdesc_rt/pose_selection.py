@@ -4,8 +4,9 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
 
     mutual matches -> candidate poses (:mod:`logdesc_rt.pose.candidates`, network units, mapped
     back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
-    few get a short ICP, each is scored, a calibrated confidence) -> the chosen pose -> optional
-    ICP -> fitness / inlier RMSE on the full clouds -> the success flag.
+    few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
+    each is scored, a calibrated confidence) -> the chosen pose -> optional ICP -> fitness /
+    inlier RMSE on the full clouds -> the success flag.
 """
 
 from __future__ import annotations
@@ -15,13 +16,15 @@ from typing import Callable
 import numpy as np
 
 from .config import RuntimeConfig
+from .normalization import PairNormalization
 from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
+from .pose.candidates import unexplained_candidate_poses
 from .refinement import refine_pose
 from .results import RegistrationResult
 from .threads import one_thread_per_caller
 from .timing import timed
-from .verification import PoseVerifier
+from .verification import UNEXPLAINED_PREFIX, PoseVerifier, VerificationResult
 
 
 def register_matched(
@@ -82,14 +85,15 @@ def register_matched(
             scale,
             config.verification,
         )
-        verification = verifier.verify(candidates)
+        verification = verify_candidates(verifier, candidates, pair.normalization, *pair.matched_network_points(), config)
     if config.estimator == "auto":
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
+        pose = chosen.transformation  # a turn-over's is its refined pose, the others their estimator's
     else:
         chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
         chosen_estimator = config.estimator
-    pose = dict(candidates)[chosen_estimator]
+        pose = dict(candidates)[chosen_estimator]
 
     refined, icp_result = pose, None
     if refinement.method is not None:
@@ -120,6 +124,40 @@ def register_matched(
             f"{config.verification.success_threshold:.3f}"
         ),
     )
+
+
+def verify_candidates(
+    verifier: PoseVerifier,
+    candidates: list[tuple[str, np.ndarray]],
+    normalization: PairNormalization,
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    config: RuntimeConfig,
+) -> VerificationResult:
+    """``verifier.verify(candidates)`` with the second look's second consensus, which needs the
+    matches in network units: the one call, shared by the runtime and the flag's calibration
+    (``benchmarks/calibrate_success.py``), so that the calibration sees what the runtime scores.
+
+    Args:
+        verifier: built on the pair's full clouds with ``config.verification``.
+        candidates: [(estimator name, (4, 4) user-frame pose)], at least one.
+        normalization: the pair's map between network units and the user frame.
+        source_matched, target_matched: (K, 3) float64 matched points, network units.
+        confidences: (K,) float64 their match probabilities.
+        config: a resolved runtime configuration (FSR, RANSAC, verification).
+    """
+    verification = config.verification
+
+    def second_consensus(leading: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        poses = unexplained_candidate_poses(
+            source_matched, target_matched, confidences, normalization.pose_to_network_frame(leading),
+            verification.match_tolerance, config.fsr, config.ransac, verification.top_k_fraction,
+            verification.second_consensus,
+        )
+        return [(UNEXPLAINED_PREFIX + name, normalization.pose_to_user_frame(pose)) for name, pose in poses]
+
+    return verifier.verify(candidates, second_consensus if verification.second_consensus else None)
 
 
 def _judged_result(

@@ -371,3 +371,58 @@ def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.nda
     step[:3, :3] = rotation
     step[:3, 3] = pivot + solution[3:] - rotation @ pivot
     return step
+
+
+def point_to_point_icp_batch(
+    source: np.ndarray, target_tree: KDTree, target: np.ndarray, initial: np.ndarray, max_distance: float,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A few point-to-point ICP iterations of several poses at once: a cheap screen of starts.
+
+    All poses share one k-d tree query and one batched SVD per iteration, so screening a handful
+    of starting poses costs about one iteration of :func:`icp` each. There is no convergence
+    test nor adaptive stage; poses whose correspondences fall below ``MIN_CORRESPONDENCES`` stay
+    where they are.
+
+    Args:
+        source: (N, 3) float64 source points (a few hundred suffice).
+        target_tree: k-d tree of ``target``.
+        target: (M, 3) float64 target points.
+        initial: (P, 4, 4) starting poses, source -> target.
+        max_distance: correspondences farther than this are dropped (the clouds' unit).
+        iterations: how many iterations, >= 0.
+
+    Returns:
+        ((P, 4, 4) float64 poses, (P,) float64 fitness: the share of ``source`` within
+        ``max_distance`` of the target after each pose).
+    """
+    poses = np.array(initial, dtype=np.float64)
+    count, size = len(poses), len(source)
+    for _ in range(iterations + 1):
+        moved = np.einsum("pij,nj->pni", poses[:, :3, :3], source) + poses[:, None, :3, 3]
+        distance, index = target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=max_distance)
+        close = np.isfinite(distance).reshape(count, size)
+        fitness = close.mean(axis=1)
+        if _ == iterations:
+            break
+        weights = close.astype(np.float64)
+        total = weights.sum(axis=1)
+        usable = total >= MIN_CORRESPONDENCES
+        matched = target[np.minimum(index, len(target) - 1)].reshape(count, size, 3)
+        divisor = np.maximum(total, 1.0)[:, None]
+        moved_centre = np.einsum("pn,pni->pi", weights, moved) / divisor
+        matched_centre = np.einsum("pn,pni->pi", weights, matched) / divisor
+        covariance = np.einsum(
+            "pn,pni,pnj->pij", weights, moved - moved_centre[:, None], matched - matched_centre[:, None]
+        )
+        u, _s, vt = np.linalg.svd(covariance)
+        sign = np.sign(np.linalg.det(np.einsum("pji,pkj->pik", vt, u)))  # det(V U^T): no reflection
+        correction = np.tile(np.eye(3), (count, 1, 1))
+        correction[:, 2, 2] = np.where(sign == 0, 1.0, sign)
+        rotation = np.einsum("pji,pjk,plk->pil", vt, correction, u)  # V diag(1, 1, d) U^T
+        step = np.tile(np.eye(4), (count, 1, 1))
+        step[:, :3, :3] = rotation
+        step[:, :3, 3] = matched_centre - np.einsum("pij,pj->pi", rotation, moved_centre)
+        step[~usable] = np.eye(4)
+        poses = step @ poses
+    return poses, fitness

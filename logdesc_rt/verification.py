@@ -38,6 +38,28 @@ Features of a pose T (all lengths relative to the pair's scale s, the larger clo
   (at most 1.5): near 1 for an object that looks the same turned over, where geometry alone
   cannot tell the right pose from its flip.
 
+**The second look.** The estimators all read the same matches, so when the matches of a
+symmetric object's mirrored twins outvote the true ones (a point on a wing's top and its twin
+below get alike descriptors) every candidate is the flip, and verification has nothing better
+to choose. After the first candidates are refined, the leading one (the highest fitness + match
+agreement: a score free of the calibration, so that the calibration can be fitted on what this
+stage produces) proposes alternatives, refined and scored with the rest:
+
+- ``turned_over``: its source turned over by a half-turn about each of ``turn_over_axes`` axes,
+  evenly spread in the plane of the source's two largest principal axes, through its centroid;
+  a few batched point-to-point ICP iterations on a few source points screen them, and the one
+  that fits best is refined (the
+  ICP finds the turn about the plate's normal). The hypothesis' own pose is its refined one
+  (a raw half-turn is no estimate);
+- ``unexplained_<estimator>``: the ``second_consensus`` estimators on the matches the leading
+  pose leaves unexplained (:func:`~logdesc_rt.pose.candidates.unexplained_candidate_poses`, by
+  the caller, who holds the matches in network units).
+
+On 60 validation scan pairs, with every turn-over refined and all five estimators on the
+unexplained matches, a right hypothesis existed for 11 of the 22 pairs whose leading pose was
+wrong (8 from either kind alone); no right leading pose lost to an alternative on 60 partial and
+60 resampled-partial pairs. ``VerificationConfig`` sets how much of it runs.
+
 The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
 the pose sits in the basin of a good alignment. When the caller does not refine, the
 unrefined pose is returned, and it counts as a success only if it also lies within
@@ -48,6 +70,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from pykdtree.kdtree import KDTree
@@ -55,10 +78,15 @@ from pykdtree.kdtree import KDTree
 from .config import VERIFICATION_FEATURES, VerificationConfig
 from .config import DEFAULT_WORKING_SIZE
 from .metrics import rotation_error_deg
-from .refinement import estimate_normals, icp
+from .refinement import estimate_normals, icp, point_to_point_icp_batch
 from .sampling import seeded_subset
 
 LOG_MATCH_SCALE = math.log1p(DEFAULT_WORKING_SIZE)  # the working size the bundled model was trained at
+TURNED_OVER = "turned_over"  # the second look's half-turned hypothesis (module docstring)
+# The turn-overs are screened by this short ICP on this many source points before one is refined.
+TURN_OVER_SCREEN_POINTS = 256
+TURN_OVER_SCREEN_ITERATIONS = 10
+UNEXPLAINED_PREFIX = "unexplained_"  # + estimator: the second consensus's hypotheses
 
 
 @dataclass(frozen=True)
@@ -95,7 +123,8 @@ class VerificationResult:
     Attributes:
         best: the chosen hypothesis (highest confidence).
         hypotheses: every distinct hypothesis, best first.
-        candidate_count: candidate poses estimated (before merging equal ones).
+        candidate_count: candidate poses scored, the estimators' and the second look's (before
+            merging equal ones).
     """
 
     best: Hypothesis
@@ -109,6 +138,14 @@ def _same_pose(first: np.ndarray, second: np.ndarray, degrees: float, distance: 
         return False
     moved = first[:3, :3] @ centre + first[:3, 3] - (second[:3, :3] @ centre + second[:3, 3])
     return bool(np.linalg.norm(moved) <= distance)
+
+
+def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(4, 4) rotation by pi about the line through ``centre`` (3,) along unit ``axis`` (3,)."""
+    pose = np.eye(4)
+    pose[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)
+    pose[:3, 3] = centre - pose[:3, :3] @ centre
+    return pose
 
 
 def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
@@ -156,11 +193,12 @@ class PoseVerifier:
         self.source_normals = estimate_normals(self.source)
         # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).
         _, axes = np.linalg.eigh(np.cov((self.source - self.centre).T))
-        self.half_turns = np.tile(np.eye(4), (3, 1, 1))
-        for i in range(3):
-            turn = 2.0 * np.outer(axes[:, i], axes[:, i]) - np.eye(3)  # rotation by pi about axis i
-            self.half_turns[i, :3, :3] = turn
-            self.half_turns[i, :3, 3] = self.centre - turn @ self.centre
+        self.half_turns = np.stack([_half_turn(axes[:, i], self.centre) for i in range(3)])
+        # The second look's turn-overs: axes in the plane of the two largest principal axes
+        # (eigh sorts them last), which turn a plate over, whichever way it lies.
+        angles = np.pi * np.arange(config.turn_over_axes) / max(1, config.turn_over_axes)
+        self.turn_overs = [_half_turn(np.cos(a) * axes[:, 2] + np.sin(a) * axes[:, 1], self.centre) for a in angles]
+        self.screen_source = self.source[seeded_subset(len(self.source), TURN_OVER_SCREEN_POINTS, generator)]
 
     def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
         """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""
@@ -231,34 +269,40 @@ class PoseVerifier:
             target_normals=self.target_normals,
         ).transformation
 
-    def verify(self, candidates: list[tuple[str, np.ndarray]]) -> VerificationResult:
-        """Merge equal candidates, refine the best few, score, and rank them.
+    def verify(
+        self,
+        candidates: list[tuple[str, np.ndarray]],
+        second_consensus: Callable[[np.ndarray], list[tuple[str, np.ndarray]]] | None = None,
+    ) -> VerificationResult:
+        """Merge equal candidates, refine the best few, take the second look, score, and rank.
 
         Args:
             candidates: [(estimator name, (4, 4) user-frame pose)], at least one; names outside
                 the config's candidates (e.g. "init") are scored but do not count as agreement.
+            second_consensus: the leading refined pose (4, 4, user frame) -> the second look's
+                ``unexplained_*`` candidates (user frame); None: none (the turn-overs still run
+                when ``turn_over_axes`` > 0).
 
         Returns:
             :class:`VerificationResult`, hypotheses ranked by confidence (ties: the order of
-            ``candidates``).
+            ``candidates``, then of the second look's).
         """
         if not candidates:
             raise ValueError("verify: no candidate poses")
         config = self.config
         groups: list[tuple[list[str], np.ndarray]] = []
-        for name, pose in candidates:
-            for names, kept in groups:
-                if _same_pose(pose, kept, config.same_pose_deg, self.distance, self.centre):
-                    names.append(name)
-                    break
-            else:
-                groups.append(([name], pose))
+        self._merge(groups, candidates)
         # Rank by fitness and match agreement first, then refine the best few.
         quick = [self.quick_score(pose) for _, pose in groups]
         order = sorted(range(len(groups)), key=lambda i: -quick[i])
-        refined_set = set(order[: config.refine_candidates])
-        verified = [self.refine(pose) if i in refined_set else pose for i, (_, pose) in enumerate(groups)]
-        fitness = [self.fitness(pose) for pose in verified]  # the margins compare these
+        verified = {i: self.refine(groups[i][1]) for i in order[: config.refine_candidates]}
+        first_groups = len(groups)
+        alternatives = self._second_look(verified, second_consensus)
+        self._merge(groups, alternatives)
+        for i in range(first_groups, len(groups)):
+            verified[i] = self.refine(groups[i][1])
+        poses = [verified.get(i, pose) for i, (_, pose) in enumerate(groups)]
+        fitness = [self.fitness(pose) for pose in poses]  # the margins compare these
         estimators = set(config.candidates)
         estimator_count = max(1, sum(name in estimators for name, _ in candidates))
         hypotheses = []
@@ -266,20 +310,56 @@ class PoseVerifier:
             rivals = [fitness[j] for j in range(len(groups)) if j != i]
             margin = fitness[i] - max(rivals) if rivals else 0.0
             agreement = sum(name in estimators for name in names) / estimator_count
-            features = self.features(verified[i], agreement=agreement, margin=margin)
+            features = self.features(poses[i], agreement=agreement, margin=margin)
             hypotheses.append(
                 Hypothesis(
                     estimators=tuple(names),
-                    transformation=pose,
-                    verified_transformation=verified[i],
+                    # A turn-over's raw half-turn is no estimate: its pose is the refined one.
+                    transformation=poses[i] if names[0] == TURNED_OVER else pose,
+                    verified_transformation=poses[i],
                     features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
                     confidence=logistic_confidence(features, config),
-                    refined=i in refined_set,
+                    refined=i in verified,
                 )
             )
         ranked = sorted(range(len(hypotheses)), key=lambda i: (-hypotheses[i].confidence, i))
         ordered = tuple(hypotheses[i] for i in ranked)
-        return VerificationResult(best=ordered[0], hypotheses=ordered, candidate_count=len(candidates))
+        return VerificationResult(
+            best=ordered[0], hypotheses=ordered, candidate_count=len(candidates) + len(alternatives)
+        )
+
+    def _merge(self, groups: list[tuple[list[str], np.ndarray]], candidates: list[tuple[str, np.ndarray]]) -> None:
+        """Add each candidate to the first group with the same pose (its name), or as a new group."""
+        for name, pose in candidates:
+            for names, kept in groups:
+                if _same_pose(pose, kept, self.config.same_pose_deg, self.distance, self.centre):
+                    names.append(name)
+                    break
+            else:
+                groups.append(([name], pose))
+
+    def _second_look(
+        self,
+        verified: dict[int, np.ndarray],
+        second_consensus: Callable[[np.ndarray], list[tuple[str, np.ndarray]]] | None,
+    ) -> list[tuple[str, np.ndarray]]:
+        """The second look's candidates (module docstring), from the refined pose with the best
+        :meth:`quick_score` (the lowest group index among ties)."""
+        if not self.turn_overs and second_consensus is None:
+            return []
+        leading = verified[max(sorted(verified), key=lambda i: self.quick_score(verified[i]))]
+        alternatives = []
+        if self.turn_overs:
+            # Screened by a short batched point-to-point ICP on a few source points: refining
+            # every turn would cost more than the rest of verification.
+            poses, fitness = point_to_point_icp_batch(
+                self.screen_source, self.target_tree, self.target, leading @ np.stack(self.turn_overs), self.distance,
+                TURN_OVER_SCREEN_ITERATIONS,
+            )
+            alternatives.append((TURNED_OVER, poses[int(np.argmax(fitness))]))  # the first among ties
+        if second_consensus is not None:
+            alternatives += second_consensus(leading)
+        return alternatives
 
     def pose_within_verified(self, pose: np.ndarray, hypothesis: Hypothesis) -> bool:
         """Whether ``pose`` lies within ``same_pose_deg`` (and d) of the hypothesis' verified pose."""

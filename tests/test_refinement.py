@@ -140,3 +140,26 @@ def test_icp_stops_when_its_pose_comes_back(monkeypatch, steps, stops_after):
     updates = iter([1] * 40)  # always the same way: never back
     _, iterations, reason = refinement._icp_stage(points, points, KDTree(points), normals, np.eye(4), 10.0, 30, 1e-7)
     assert (iterations, reason) == (30, "max_iterations")
+
+
+def test_the_batched_screen_recovers_a_small_motion_and_leaves_a_hopeless_start():
+    """point_to_point_icp_batch: one start near the truth converges to it, one at the truth
+    stays, one with no target point within reach is left where it is (fitness 0)."""
+    from pykdtree.kdtree import KDTree
+    from scipy.spatial.transform import Rotation
+
+    from logdesc_rt.refinement import point_to_point_icp_batch
+
+    rng = np.random.default_rng(0)
+    target = rng.normal(size=(3000, 3)) * [1.0, 0.6, 0.3]
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_rotvec([0.1, -0.05, 0.08]).as_matrix()
+    truth[:3, 3] = [0.05, 0.02, -0.03]
+    source = (target - truth[:3, 3]) @ truth[:3, :3]  # truth maps source onto target
+    far = np.eye(4)
+    far[:3, 3] = [100.0, 0.0, 0.0]
+    starts = np.stack([np.eye(4), truth, far])
+    poses, fitness = point_to_point_icp_batch(source[:300], KDTree(target), target, starts, 0.3, 15)
+    assert np.allclose(poses[0], truth, atol=1e-9) and np.allclose(poses[1], truth, atol=1e-9)
+    assert np.array_equal(poses[2], far) and fitness[2] == 0.0
+    assert fitness[0] == fitness[1] == 1.0

@@ -19,7 +19,7 @@ from logdesc_rt.config import (
 )
 from logdesc_rt.demo import make_demo_pair
 from logdesc_rt.metrics import rotation_error_deg
-from logdesc_rt.pose.candidates import candidate_poses
+from logdesc_rt.pose.candidates import candidate_poses, unexplained_candidate_poses
 from logdesc_rt.verification import PoseVerifier, logistic_confidence
 
 from .bunny import bunny_pair
@@ -302,3 +302,104 @@ def test_a_calibration_stored_without_its_candidates_keeps_the_four_of_its_day(t
     (model / "manifest.json").write_text(json.dumps(manifest))
     assert Registrar(model).config.verification.candidates == LEGACY_CANDIDATES
     assert "core" in VerificationConfig().candidates  # today's default set differs
+
+
+# --- The second look (logdesc_rt/verification.py docstring) ---------------------------------
+
+
+def _rigid(rotvec, translation) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    pose[:3, 3] = translation
+    return pose
+
+
+def _plate_with_a_ridge(rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) a 2 x 1 plate, one face only (a scan sees one side), gently rippled, with a ridge
+    near one end: turned over about any in-plane axis, the plate fits itself again roughly, the
+    ridge does not; the ripples let the ICP find the turn about the plate's normal."""
+    x, y = rng.uniform(-1, 1, 3000), rng.uniform(-0.5, 0.5, 3000)
+    plate = np.column_stack([x, y, 0.04 * np.sin(4.0 * x) * np.cos(5.0 * y)])
+    ridge = np.column_stack([rng.uniform(0.4, 0.8, 600), rng.uniform(-0.1, 0.3, 600), rng.uniform(0.0, 0.25, 600)])
+    return np.vstack([plate, ridge]) + rng.normal(scale=0.003, size=(3600, 3))
+
+
+@pytest.mark.parametrize("axis_deg", [20.0, 65.0, 140.0])
+def test_the_second_look_turns_a_flipped_plate_back(axis_deg):
+    """The only candidate is the plate turned over about an in-plane axis (the failure of
+    symmetric scans: every estimator finds the flip). The second look's turned-over hypothesis
+    finds the truth and ranks first; without it the flip stays."""
+    rng = np.random.default_rng(3)
+    source = _plate_with_a_ridge(rng)
+    truth = _rigid([0.3, -0.5, 0.9], [0.4, -0.2, 0.1])
+    target = source @ truth[:3, :3].T + truth[:3, 3] + rng.normal(scale=0.003, size=source.shape)
+    axis = np.array([np.cos(np.radians(axis_deg)), np.sin(np.radians(axis_deg)), 0.0])
+    centre = source.mean(axis=0)
+    flip = np.eye(4)
+    flip[:3, :3] = Rotation.from_rotvec(np.pi * axis).as_matrix()
+    flip[:3, 3] = centre - flip[:3, :3] @ centre
+    flipped = truth @ flip
+    matched = source[:50]
+    arguments = (source, target, matched, matched @ truth[:3, :3].T + truth[:3, 3], np.full(50, 0.5), 1.0)
+
+    with_look = PoseVerifier(*arguments).verify([("fsr", flipped)])
+    best = with_look.best
+    assert best.estimators[0] == "turned_over"
+    assert rotation_error_deg(best.verified_transformation[:3, :3], truth[:3, :3]) < 1.0
+    # Its own pose is the refined one: a raw half-turn is no estimate.
+    assert np.array_equal(best.transformation, best.verified_transformation)
+
+    without = PoseVerifier(*arguments, VerificationConfig(turn_over_axes=0, second_consensus=())).verify(
+        [("fsr", flipped)]
+    )
+    assert [h.estimators for h in without.hypotheses] == [("fsr",)]
+    assert rotation_error_deg(without.best.verified_transformation[:3, :3], truth[:3, :3]) > 170.0
+
+
+def test_the_second_consensus_finds_the_pose_the_outvoted_matches_agree_on():
+    """60 % of the matches agree on a wrong pose, 40 % on the true one: every estimator reads
+    the wrong one; without the matches it explains, RANSAC finds the true one."""
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-1, 1, size=(300, 3))
+    truth, wrong = _rigid([0.2, 0.1, -0.3], [0.1, 0.0, 0.2]), _rigid([2.0, -1.0, 0.5], [-0.3, 0.2, 0.0])
+    target = np.vstack([points[:180] @ wrong[:3, :3].T + wrong[:3, 3], points[180:] @ truth[:3, :3].T + truth[:3, 3]])
+    confidences = np.full(300, 0.5)
+    first = dict(candidate_poses(points, target, confidences))
+    assert rotation_error_deg(first["ransac"][:3, :3], wrong[:3, :3]) < 1e-3
+    second = dict(unexplained_candidate_poses(points, target, confidences, first["ransac"], 0.08, estimators=("ransac",)))
+    assert set(second) == {"ransac"}
+    assert rotation_error_deg(second["ransac"][:3, :3], truth[:3, :3]) < 1e-3
+    # A pose that explains all but two matches leaves nothing to fit.
+    almost = target.copy()
+    almost[180:298] = points[180:298] @ wrong[:3, :3].T + wrong[:3, 3]
+    assert unexplained_candidate_poses(points, almost, confidences, wrong, 0.08) == []
+
+
+def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
+    """register() scores the second look's hypotheses as the calibration did, and the config
+    turns each part off."""
+    full = registrar.register(demo_pair.source, demo_pair.target)
+    names = {name for h in full.verification.hypotheses for name in h.estimators}
+    assert "turned_over" in names
+    off = registrar.register(
+        demo_pair.source, demo_pair.target, config={"verification": {"turn_over_axes": 0, "second_consensus": []}}
+    )
+    names = {name for h in off.verification.hypotheses for name in h.estimators}
+    assert "turned_over" not in names and not any(name.startswith("unexplained_") for name in names)
+    assert rotation_error_deg(full.rotation, demo_pair.true_transformation[:3, :3]) < 2.0
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"turn_over_axes": -1}, "turn_over_axes"),
+        ({"turn_over_axes": 2.5}, "turn_over_axes"),
+        ({"turn_over_axes": True}, "turn_over_axes"),
+        ({"second_consensus": "ransac"}, "second_consensus"),
+        ({"second_consensus": True}, "second_consensus"),
+        ({"second_consensus": ["magic"]}, "second_consensus"),
+    ],
+)
+def test_bad_second_look_settings_are_named(values, message):
+    with pytest.raises(ValueError, match=message):
+        VerificationConfig(**values)

@@ -95,3 +95,43 @@ def candidate_poses(
             continue
         candidates.append((name, pose))
     return candidates
+
+
+def unexplained_candidate_poses(
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    pose: np.ndarray,
+    tolerance: float,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+    estimators: tuple[str, ...] = VerificationConfig.candidates,
+) -> list[tuple[str, np.ndarray]]:
+    """A second consensus: the candidates of the matches that ``pose`` leaves unexplained.
+
+    On an object that looks the same turned over (a wing, a tub), a point and its mirrored twin
+    get alike descriptors, and the twin matches can outvote the true ones: every estimator then
+    finds the flip. Without the matches the flip explains, the true ones are the largest
+    consistent set left.
+
+    Args:
+        source_matched, target_matched, confidences: the matches as for :func:`candidate_poses`
+            (network units).
+        pose: (4, 4) network-frame pose whose explained matches are left out.
+        tolerance: a match is explained when ``pose`` maps its source point within this of its
+            target point (network units).
+        fsr_config, ransac_config, top_k_fraction, estimators: as for :func:`candidate_poses`.
+
+    Returns:
+        [(estimator name, (4, 4) network-frame pose)] of the unexplained matches; empty when
+        fewer than three are left.
+    """
+    residual = np.linalg.norm(source_matched @ pose[:3, :3].T + pose[:3, 3] - target_matched, axis=1)
+    rest = residual >= tolerance
+    if np.count_nonzero(rest) < 3:
+        return []
+    return candidate_poses(
+        source_matched[rest], target_matched[rest], confidences[rest], fsr_config, ransac_config, top_k_fraction,
+        estimators,
+    )
