@@ -398,31 +398,31 @@ def point_to_point_icp_batch(
     """
     poses = np.array(initial, dtype=np.float64)
     count, size = len(poses), len(source)
-    for _ in range(iterations + 1):
-        moved = np.einsum("pij,nj->pni", poses[:, :3, :3], source) + poses[:, None, :3, 3]
+    for iteration in range(iterations + 1):
+        moved = source @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # (P, N, 3)
         distance, index = target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=max_distance)
         close = np.isfinite(distance).reshape(count, size)
         fitness = close.mean(axis=1)
-        if _ == iterations:
+        if iteration == iterations:
             break
-        weights = close.astype(np.float64)
-        total = weights.sum(axis=1)
-        usable = total >= MIN_CORRESPONDENCES
+        weights = close.astype(np.float64)[:, None, :]  # (P, 1, N)
+        total = weights.sum(axis=2)  # (P, 1)
+        usable = total[:, 0] >= MIN_CORRESPONDENCES
         matched = target[np.minimum(index, len(target) - 1)].reshape(count, size, 3)
-        divisor = np.maximum(total, 1.0)[:, None]
-        moved_centre = np.einsum("pn,pni->pi", weights, moved) / divisor
-        matched_centre = np.einsum("pn,pni->pi", weights, matched) / divisor
-        covariance = np.einsum(
-            "pn,pni,pnj->pij", weights, moved - moved_centre[:, None], matched - matched_centre[:, None]
-        )
-        u, _s, vt = np.linalg.svd(covariance)
-        sign = np.sign(np.linalg.det(np.einsum("pji,pkj->pik", vt, u)))  # det(V U^T): no reflection
-        correction = np.tile(np.eye(3), (count, 1, 1))
-        correction[:, 2, 2] = np.where(sign == 0, 1.0, sign)
-        rotation = np.einsum("pji,pjk,plk->pil", vt, correction, u)  # V diag(1, 1, d) U^T
+        divisor = np.maximum(total, 1.0)
+        moved_centre = (weights @ moved)[:, 0] / divisor  # (P, 3)
+        matched_centre = (weights @ matched)[:, 0] / divisor
+        covariance = ((moved - moved_centre[:, None]) * weights.transpose(0, 2, 1)).transpose(0, 2, 1) @ (
+            matched - matched_centre[:, None]
+        )  # (P, 3, 3): sum of w (m - cm)(t - ct)^T
+        u, _, vt = np.linalg.svd(covariance)
+        v = vt.transpose(0, 2, 1)
+        reflection = np.linalg.det(v @ u.transpose(0, 2, 1)) < 0
+        v[reflection, :, 2] *= -1.0  # V diag(1, 1, -1): the nearest rotation, never a mirror
+        rotation = v @ u.transpose(0, 2, 1)
         step = np.tile(np.eye(4), (count, 1, 1))
         step[:, :3, :3] = rotation
-        step[:, :3, 3] = matched_centre - np.einsum("pij,pj->pi", rotation, moved_centre)
+        step[:, :3, 3] = matched_centre - (rotation @ moved_centre[:, :, None])[:, :, 0]
         step[~usable] = np.eye(4)
         poses = step @ poses
     return poses, fitness
