@@ -35,7 +35,10 @@ class RegistrationResult:
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
             "core" (see :mod:`logdesc_rt.pose.candidates`), "init" (the caller's initial guess),
-            or "none" (no pose could be estimated: the identity, see ``reason``).
+            verification's second look: "turned_over" (the leading pose turned over, refined)
+            or "unexplained_<estimator>" (that estimator on the matches the leading pose left
+            unexplained; :mod:`logdesc_rt.verification`), or "none" (no pose could be
+            estimated: the identity, see ``reason``).
         refinement: None, "point_to_point" or "point_to_plane".
         transformation_before_refinement: (4, 4), the learned pipeline's pose before ICP.
         icp: how ICP ended (iterations, converged, stop reason, its fitness / RMSE), or None

@@ -48,17 +48,17 @@ stage produces) proposes alternatives, refined and scored with the rest:
 - ``turned_over``: its source turned over by a half-turn about each of ``turn_over_axes`` axes,
   evenly spread in the plane of the source's two largest principal axes, through its centroid;
   a few batched point-to-point ICP iterations on a few source points screen them, and the one
-  that fits best is refined (the
-  ICP finds the turn about the plate's normal). The hypothesis' own pose is its refined one
-  (a raw half-turn is no estimate);
+  that fits best is refined (the ICP finds the turn about the plate's normal). The
+  hypothesis' own pose is its refined one (a raw half-turn is no estimate);
 - ``unexplained_<estimator>``: the ``second_consensus`` estimators on the matches the leading
   pose leaves unexplained (:func:`~logdesc_rt.pose.candidates.unexplained_candidate_poses`, by
   the caller, who holds the matches in network units).
 
-On 60 validation scan pairs, with every turn-over refined and all five estimators on the
-unexplained matches, a right hypothesis existed for 11 of the 22 pairs whose leading pose was
-wrong (8 from either kind alone); no right leading pose lost to an alternative on 60 partial and
-60 resampled-partial pairs. ``VerificationConfig`` sets how much of it runs.
+On 60 validation scan pairs a right alternative existed for 16 of the 22 whose leading pose
+was wrong (every alternative at full cost, ``benchmarks/second_look_study.py``); with the flag
+refitted, ``register()`` went from 51.7 to 68.3 % on them without ICP, and lost nothing on the
+validation partial and resampled-partial pairs (``benchmarks/results/second_look/README.md``).
+``VerificationConfig.turn_over_axes`` and ``.second_consensus`` set how much of it runs.
 
 The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
 the pose sits in the basin of a good alignment. When the caller does not refine, the
