@@ -123,16 +123,23 @@ class ModelManifest:
         resolved: ``Registrar`` fills in the working size and the model's matching).
 
         A calibration stored without its candidate set (v3 and older) was fitted with the
-        four estimators of its day, and keeps them: its ``agreement`` feature counts among them."""
+        four estimators of its day, and keeps them: its ``agreement`` feature counts among them.
+        One stored without the second look's settings (before session 16) was fitted without
+        it, and runs without it: its ``margin`` feature never met a turn-over as a rival."""
         runtime = dict(self.runtime)
         verification = runtime.get("verification")
-        if isinstance(verification, dict) and "candidates" not in verification:
-            runtime["verification"] = {**verification, "candidates": list(LEGACY_CANDIDATES)}
+        if isinstance(verification, dict):
+            legacy = {"candidates": list(LEGACY_CANDIDATES)}
+            if "weights" in verification:  # a stored calibration
+                legacy.update(LEGACY_FIRST_LOOK_ONLY)
+            runtime["verification"] = {**legacy, **verification}
         return RuntimeConfig.from_dict(runtime)
 
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
+LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": []}
+"""The second look's settings of calibrations stored without them (fitted before it existed)."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

@@ -403,3 +403,24 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
 def test_bad_second_look_settings_are_named(values, message):
     with pytest.raises(ValueError, match=message):
         VerificationConfig(**values)
+
+
+def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
+    """A manifest calibrated before session 16 holds no second-look settings: its flag was
+    fitted without turn-overs as rivals, so the model runs without the second look; the shipped
+    manifest stores its own settings."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    assert manifest["runtime"]["verification"]["turn_over_axes"] == 6
+    for key in ("turn_over_axes", "second_consensus"):
+        manifest["runtime"]["verification"].pop(key)
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    verification = Registrar(model).config.verification
+    assert verification.turn_over_axes == 0 and verification.second_consensus == ()
+    assert Registrar().config.verification.second_consensus == ("ransac",)
