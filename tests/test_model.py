@@ -591,3 +591,21 @@ def test_onnx_export_with_dynamic_point_counts(tmp_path):
         expected_scores = model.match_scores(expected_src, expected_tgt, src[2], tgt[2])
     np.testing.assert_allclose(desc_src, expected_src.numpy(), atol=1e-5)
     np.testing.assert_allclose(onnx_scores, expected_scores.numpy(), atol=1e-4)
+
+
+def test_the_slim_preset_reads_sixteen_edge_neighbours():
+    """ModelConfig.edge_neighbours is the geometry's k: the slim preset's edges are (N, 16, 13)
+    and v4's stay (N, 30, 13); the paper's network refuses another k."""
+    import numpy as np
+    import pytest
+
+    from logdesc_rt.geometry import compute_geometry
+    from training.config import PRESETS, ModelConfig
+
+    points = np.random.default_rng(0).uniform(-1, 1, size=(200, 3))
+    for name, k in (("v5_slim", 16), ("v4", 30)):
+        config = PRESETS[name]
+        assert config.geometry().umbrella_neighbours == k
+        assert compute_geometry(points, config.geometry()).edges.shape == (200, k, config.edge_channels)
+    with pytest.raises(ValueError, match="edge_neighbours"):
+        ModelConfig(edge_neighbours=16)

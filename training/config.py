@@ -73,6 +73,11 @@ class ModelConfig(_DictMixin):
         sinkhorn_iterations: log-domain Sinkhorn iterations (50 in the official code).
         dustbin_init: initial value of the learned dustbin score (1.0).
 
+    Geometry read by the invariant network:
+        edge_neighbours: k, each point's nearest neighbours in its (N, k, C) edge tensor (the
+            geometry's ``umbrella_neighbours``; 30 for v3 and v4). The edge convolutions' cost
+            grows with it, and their weights do not depend on it.
+
     Architecture:
         architecture: ``"logdesc"`` (the paper's network) or ``"invariant"`` (v3: invariant
             edges, distance and normal terms as query / key channels, one logit matrix per
@@ -97,6 +102,7 @@ class ModelConfig(_DictMixin):
     sinkhorn_iterations: int = 50
     dustbin_init: float = 1.0
     architecture: str = "logdesc"
+    edge_neighbours: int = GeometryConfig.umbrella_neighbours
 
     def __post_init__(self) -> None:
         # JSON turns tuples into lists; a frozen dataclass must hold a hashable tuple.
@@ -104,6 +110,10 @@ class ModelConfig(_DictMixin):
             self, "descriptor_channels", tuple(int(c) for c in self.descriptor_channels)
         )
         name = type(self).__name__
+        if self.edge_neighbours < 3:
+            raise ValueError(f"{name}.edge_neighbours must be >= 3, got {self.edge_neighbours}")
+        if self.architecture != "invariant" and self.edge_neighbours != GeometryConfig.umbrella_neighbours:
+            raise ValueError(f"{name}.edge_neighbours: the paper's network reads the paper's geometry (k = 30)")
         if self.edge_channels < 1:
             raise ValueError(f"{name}.edge_channels must be >= 1, got {self.edge_channels}")
         if not self.descriptor_channels or min(self.descriptor_channels) < 1:
@@ -180,7 +190,7 @@ class ModelConfig(_DictMixin):
         if self.architecture == "invariant":
             # v3 reads the 11 invariant channels; v4 the 13 of the chiral layout.
             layout = "chiral" if self.edge_channels == EDGE_CHANNELS["chiral"] else "invariant"
-            return GeometryConfig(edge_layout=layout, normals="pca")
+            return GeometryConfig(edge_layout=layout, normals="pca", umbrella_neighbours=self.edge_neighbours)
         return PAPER_GEOMETRY
 
     def to_dict(self) -> dict[str, Any]:
@@ -279,3 +289,7 @@ PRESETS["v4_descriptor"] = PRESETS["v4"].replace(transformer_layers=0)
 # matcher's attention passes (issue #23: the descriptor alone lost the shape protocols, so the
 # next question is how little matcher keeps them). v4's first pair and final map warm-start it.
 PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
+# A slim v4 for the 60 ms goal of issue #23 (session 16, not trained to an end yet): 16 edge
+# neighbours instead of 30, one descriptor attention layer and one transformer pair. Every
+# weight it has is shaped as v4's, so v4's weights warm-start it (--init-from).
+PRESETS["v5_slim"] = PRESETS["v4"].replace(edge_neighbours=16, descriptor_attention_layers=1, transformer_layers=1)
