@@ -156,6 +156,9 @@ def collect(
                 match_source=matched.matches.source_index,
                 match_target=matched.matches.target_index,
                 confidence=matched.matches.confidence,
+                descriptor_match_source=matched.descriptor_matches.source_index,
+                descriptor_match_target=matched.descriptor_matches.target_index,
+                descriptor_confidence=matched.descriptor_matches.confidence,
                 source_centre=matched.normalization.source_centre,
                 target_centre=matched.normalization.target_centre,
                 scale=matched.normalization.scale,
@@ -180,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--candidates", nargs="+", default=None, choices=CANDIDATE_ESTIMATORS,
                          help="the candidate estimators the calibration is fitted with (stored with it in the "
                               "manifest; default: VerificationConfig's)")
+    fitting.add_argument("--descriptor-consensus", nargs="*", default=None, choices=CANDIDATE_ESTIMATORS,
+                         help="the estimators run on the descriptors' own mutual nearest neighbours (none: "
+                              "give the flag alone; default: VerificationConfig's)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
     for command in (collecting, fitting):
@@ -188,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
-        fit(args.groups, args.cache, args.report, args.manifest, args.candidates)
+        fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus)
     return 0
 
 
@@ -226,7 +232,8 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     from logdesc_rt.metrics import rotation_error_deg
     from logdesc_rt.normalization import PairNormalization
     from logdesc_rt.config import RuntimeConfig
-    from logdesc_rt.pose.candidates import candidate_poses
+    from logdesc_rt.matching import Matches
+    from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses
     from logdesc_rt.pose_selection import verify_candidates
     from logdesc_rt.verification import PoseVerifier
 
@@ -241,6 +248,19 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
         for name, pose in candidate_poses(source_matched, target_matched, data["confidence"],
                                           top_k_fraction=config.top_k_fraction, estimators=config.candidates)
     ]
+    if config.descriptor_consensus:
+        if "descriptor_match_source" not in data:
+            raise SystemExit(f"{path} was collected without the descriptors' matches: collect into a new --cache")
+        descriptor_matches = Matches(
+            data["descriptor_match_source"], data["descriptor_match_target"], data["descriptor_confidence"]
+        )
+        candidates += [
+            (name, normalization.pose_to_user_frame(pose))
+            for name, pose in descriptor_candidate_poses(
+                data["source_network"], data["target_network"], descriptor_matches,
+                top_k_fraction=config.top_k_fraction, estimators=config.descriptor_consensus,
+            )
+        ]
     if with_init:
         rng = np.random.default_rng([SEED, INIT_GROUP_NUMBER, int.from_bytes(path.stem.encode(), "little") % 2**32])
         candidates.append(("init", _near_truth(data["truth"], float(data["scale"]), rng)))
@@ -363,7 +383,7 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
 
 def fit(
     groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None,
-    candidates: tuple[str, ...] | None = None,
+    candidates: tuple[str, ...] | None = None, descriptor_consensus: tuple[str, ...] | None = None,
 ) -> None:
     import dataclasses
 
@@ -371,6 +391,8 @@ def fit(
     from logdesc_rt.verification import logistic_confidence
 
     base = VerificationConfig() if candidates is None else VerificationConfig(candidates=tuple(candidates))
+    if descriptor_consensus is not None:
+        base = dataclasses.replace(base, descriptor_consensus=tuple(descriptor_consensus))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
     if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
@@ -460,6 +482,7 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "candidates": list(fitted.candidates),
         "turn_over_axes": fitted.turn_over_axes,
         "second_consensus": list(fitted.second_consensus),
+        "descriptor_consensus": list(fitted.descriptor_consensus),
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

@@ -244,6 +244,10 @@ class VerificationConfig(_DictMixin):
             whose mirrored twin matches outvoted it); empty: none. RANSAC alone found 33 of
             the 40 right poses that all five found on the calibration pairs, at a fifth of
             their cost.
+        descriptor_consensus: the estimators (of CANDIDATE_ESTIMATORS) also run on the
+            descriptors' own mutual nearest neighbours (before the matcher's transformer; a
+            pair matched outside the runtime, without descriptors, has none); their
+            candidates are named ``descriptor_<estimator>``; empty: none.
         weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
         bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
         success_threshold: success when confidence >= this.
@@ -264,6 +268,7 @@ class VerificationConfig(_DictMixin):
     same_pose_deg: float = 4.0
     turn_over_axes: int = 6
     second_consensus: tuple[str, ...] = ("ransac",)
+    descriptor_consensus: tuple[str, ...] = ()
     # A calibration belongs to a model: the one in effect is the model manifest's
     # ("runtime" -> "verification"). These defaults are the shipped model's (v4; held equal to
     # its manifest by tests/test_verification.py), the fit of benchmarks/calibrate_success.py
@@ -295,14 +300,16 @@ class VerificationConfig(_DictMixin):
                 f"VerificationConfig.candidates: {list(self.candidates)} must be a non-empty subset of "
                 f"{CANDIDATE_ESTIMATORS}"
             )
-        if not isinstance(self.second_consensus, (tuple, list)):
-            raise ValueError(f"VerificationConfig.second_consensus must be a list of estimators, got {self.second_consensus!r}")
-        object.__setattr__(self, "second_consensus", tuple(str(name) for name in self.second_consensus))
-        if set(self.second_consensus) - set(CANDIDATE_ESTIMATORS):
-            raise ValueError(
-                f"VerificationConfig.second_consensus: {list(self.second_consensus)} must be a subset of "
-                f"{CANDIDATE_ESTIMATORS}"
-            )
+        for name in ("second_consensus", "descriptor_consensus"):
+            estimators = getattr(self, name)
+            if not isinstance(estimators, (tuple, list)):
+                raise ValueError(f"VerificationConfig.{name} must be a list of estimators, got {estimators!r}")
+            object.__setattr__(self, name, tuple(str(estimator) for estimator in estimators))
+            if set(getattr(self, name)) - set(CANDIDATE_ESTIMATORS):
+                raise ValueError(
+                    f"VerificationConfig.{name}: {list(getattr(self, name))} must be a subset of "
+                    f"{CANDIDATE_ESTIMATORS}"
+                )
         if len(self.weights) != len(VERIFICATION_FEATURES):
             raise ValueError(
                 f"VerificationConfig.weights: {len(self.weights)} values, expected one per feature "

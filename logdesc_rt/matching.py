@@ -232,3 +232,28 @@ def correspondences_as_array(correspondences: np.ndarray, source_count: int) -> 
     assignment = np.full(source_count, -1, dtype=np.int64)
     assignment[correspondences[:, 0]] = correspondences[:, 1]
     return assignment
+
+
+def mutual_nearest_descriptors(source_descriptors: np.ndarray, target_descriptors: np.ndarray) -> Matches:
+    """Mutual nearest neighbours in descriptor space: source i and target j match when each is
+    the other's most similar (cosine) descriptor. The paper's descriptor + RANSAC reading, which
+    leans on the descriptor alone and so fails differently from the matcher's transformer.
+
+    Args:
+        source_descriptors, target_descriptors: (N, d) / (M, d) unit-norm descriptors (the
+            descriptor network's output; :attr:`PairMatches.source_descriptors`).
+
+    Returns:
+        :class:`Matches` sorted by source index; ``confidence`` is the cosine similarity,
+        clipped to [0, 1] (the estimators weigh with it).
+    """
+    similarity = np.asarray(source_descriptors, dtype=np.float32) @ np.asarray(target_descriptors, dtype=np.float32).T
+    best_target = similarity.argmax(axis=1)  # (N,)
+    best_source = similarity.argmax(axis=0)  # (M,)
+    source_index = np.flatnonzero(best_source[best_target] == np.arange(len(best_target)))
+    target_index = best_target[source_index]
+    return Matches(
+        source_index=source_index.astype(np.int64),
+        target_index=target_index.astype(np.int64),
+        confidence=np.clip(similarity[source_index, target_index], 0.0, 1.0).astype(np.float64),
+    )

@@ -125,7 +125,8 @@ class ModelManifest:
         A calibration stored without its candidate set (v3 and older) was fitted with the
         four estimators of its day, and keeps them: its ``agreement`` feature counts among them.
         One stored without the second look's settings (before session 16) was fitted without
-        it, and runs without it: its ``margin`` feature never met a turn-over as a rival."""
+        it, and runs without it: its ``margin`` feature never met a turn-over as a rival. One
+        stored without ``descriptor_consensus`` runs without the descriptors' candidates."""
         runtime = dict(self.runtime)
         verification = runtime.get("verification")
         if isinstance(verification, dict):
@@ -138,8 +139,9 @@ class ModelManifest:
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
-LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": []}
-"""The second look's settings of calibrations stored without them (fitted before it existed)."""
+LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": []}
+"""Settings a stored calibration lacks were not there when it was fitted: off (each key is
+filled in alone; the second look before session 16, the descriptors' candidates before 17)."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

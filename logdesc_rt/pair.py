@@ -9,6 +9,7 @@ own path (:func:`logdesc_rt.pose_selection.register_matched`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -16,9 +17,9 @@ from .config import CANDIDATE_ESTIMATORS, MatchingConfig, RuntimeConfig
 from .config_resolution import seeded
 from .errors import RegistrationError
 from .geometry import PointGeometry
-from .matching import Matches, sinkhorn_matches
+from .matching import Matches, mutual_nearest_descriptors, sinkhorn_matches
 from .normalization import PairNormalization
-from .pose.candidates import candidate_poses, estimate_pose
+from .pose.candidates import candidate_poses, descriptor_candidate_poses, estimate_pose
 
 MIN_MATCHES = 3  # a rigid transform needs three non-collinear pairs
 
@@ -128,8 +129,17 @@ class PairMatches:
         )
         return self.normalization.pose_to_user_frame(network_pose)
 
+    @cached_property
+    def descriptor_matches(self) -> Matches | None:
+        """The descriptors' own mutual nearest neighbours (before the matcher), indices into the
+        working subsets; None for a pair without descriptors (:func:`pair_from_scores`)."""
+        if self.source_descriptors is None or self.target_descriptors is None:
+            return None
+        return mutual_nearest_descriptors(self.source_descriptors, self.target_descriptors)
+
     def candidates(self, config: RuntimeConfig | None = None) -> list[tuple[str, np.ndarray]]:
-        """[(estimator, (4, 4) user-frame pose)] of every candidate estimator (unverified).
+        """[(estimator, (4, 4) user-frame pose)] of every candidate estimator (unverified), then
+        those of ``config.verification.descriptor_consensus`` on :attr:`descriptor_matches`.
 
         Raises:
             RegistrationError: fewer than 3 mutual matches.
@@ -142,6 +152,11 @@ class PairMatches:
         poses = candidate_poses(
             *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction, estimators
         )
+        if config.verification.descriptor_consensus and self.descriptor_matches is not None:
+            poses += descriptor_candidate_poses(
+                self.source_network, self.target_network, self.descriptor_matches, config.fsr, config.ransac,
+                config.verification.top_k_fraction, config.verification.descriptor_consensus,
+            )
         return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
 
     def matched_network_points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -34,7 +34,8 @@ class RegistrationResult:
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
-            "core" (see :mod:`logdesc_rt.pose.candidates`), "init" (the caller's initial guess),
+            "core" (see :mod:`logdesc_rt.pose.candidates`), "descriptor_<estimator>" (that
+            estimator on the descriptors' own mutual nearest neighbours), "init" (the caller's initial guess),
             verification's second look: "turned_over" (the leading pose turned over, refined)
             or "unexplained_<estimator>" (that estimator on the matches the leading pose left
             unexplained; :mod:`logdesc_rt.verification`), or "none" (no pose could be

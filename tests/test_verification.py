@@ -19,7 +19,8 @@ from logdesc_rt.config import (
 )
 from logdesc_rt.demo import make_demo_pair
 from logdesc_rt.metrics import rotation_error_deg
-from logdesc_rt.pose.candidates import candidate_poses, unexplained_candidate_poses
+from logdesc_rt.matching import mutual_nearest_descriptors
+from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses, unexplained_candidate_poses
 from logdesc_rt.verification import PoseVerifier, logistic_confidence
 
 from .bunny import bunny_pair
@@ -398,6 +399,8 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"second_consensus": "ransac"}, "second_consensus"),
         ({"second_consensus": True}, "second_consensus"),
         ({"second_consensus": ["magic"]}, "second_consensus"),
+        ({"descriptor_consensus": "ransac"}, "descriptor_consensus"),
+        ({"descriptor_consensus": ["descriptor_ransac"]}, "descriptor_consensus"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
@@ -418,9 +421,75 @@ def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
     shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
     manifest = json.loads((model / "manifest.json").read_text())
     assert manifest["runtime"]["verification"]["turn_over_axes"] == 6
-    for key in ("turn_over_axes", "second_consensus"):
-        manifest["runtime"]["verification"].pop(key)
+    for key in ("turn_over_axes", "second_consensus", "descriptor_consensus"):
+        manifest["runtime"]["verification"].pop(key, None)
     (model / "manifest.json").write_text(json.dumps(manifest))
     verification = Registrar(model).config.verification
     assert verification.turn_over_axes == 0 and verification.second_consensus == ()
+    assert verification.descriptor_consensus == ()
     assert Registrar().config.verification.second_consensus == ("ransac",)
+
+
+def test_a_calibration_stored_before_the_descriptor_candidates_runs_without_them(tmp_path):
+    """A manifest fitted with the second look but before the descriptors' candidates keeps the
+    second look and leaves the descriptors' candidates out (its ``agreement`` never counted them)."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["runtime"]["verification"].pop("descriptor_consensus", None)
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    verification = Registrar(model).config.verification
+    assert verification.turn_over_axes == 6 and verification.descriptor_consensus == ()
+
+
+def test_mutual_nearest_descriptors_keep_only_mutual_best_pairs():
+    """Source 0 and 1 both like target 0 best; only the mutual one (1 -> 0) is kept, 2 <-> 2 too;
+    the similarity is the confidence, clipped at 0."""
+    source = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]], dtype=np.float32)
+    target = np.array([[0.6, 0.8, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=np.float32)
+    matches = mutual_nearest_descriptors(source, target)
+    assert matches.source_index.tolist() == [1, 2] and matches.target_index.tolist() == [0, 2]
+    np.testing.assert_allclose(matches.confidence, [0.8, 1.0], rtol=1e-6)
+    opposite = mutual_nearest_descriptors(source[:1], -source[:1])
+    assert opposite.confidence.tolist() == [0.0]
+
+
+def test_descriptor_candidates_read_the_descriptors_own_matches():
+    """Descriptor matches that hold the truth give a ``descriptor_ransac`` candidate at the
+    truth, whatever the matcher's matches say; fewer than three give none."""
+    from logdesc_rt.matching import Matches
+
+    rng = np.random.default_rng(3)
+    source = rng.uniform(-1, 1, size=(200, 3))
+    truth = _rigid([0.3, -0.2, 0.9], [0.1, 0.2, 0.0])
+    target = source @ truth[:3, :3].T + truth[:3, 3]
+    order = rng.permutation(200)
+    right = np.arange(120)
+    wrong = np.arange(120, 200)
+    matches = Matches(
+        np.concatenate([right, wrong]), np.concatenate([right, order[wrong]]), np.full(200, 0.5)
+    )
+    candidates = dict(descriptor_candidate_poses(source, target, matches, estimators=("ransac", "svd")))
+    assert set(candidates) == {"descriptor_ransac", "descriptor_svd"}
+    assert rotation_error_deg(candidates["descriptor_ransac"][:3, :3], truth[:3, :3]) < 1e-3
+    few = Matches(right[:2], right[:2], np.full(2, 0.5))
+    assert descriptor_candidate_poses(source, target, few) == []
+
+
+def test_the_runtime_scores_the_descriptor_candidates_when_configured(registrar, demo_pair):
+    """register() verifies ``descriptor_ransac`` when the config asks, and not otherwise."""
+    def names(result):
+        return {name for h in result.verification.hypotheses for name in h.estimators}
+
+    on = registrar.register(
+        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": ["ransac"]}}
+    )
+    off = registrar.register(
+        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": []}}
+    )
+    assert "descriptor_ransac" in names(on) and not any(name.startswith("descriptor_") for name in names(off))

@@ -12,6 +12,10 @@ confidences):
   the largest set whose pairwise distances agree in both clouds), SVD on it, re-solved on its
   inliers; it holds up to about 90 % wrong matches, where FSR breaks at about half.
 
+Beside the matcher's matches, the same estimators can read the descriptors' own mutual nearest
+neighbours (:func:`descriptor_candidate_poses`, ``VerificationConfig.descriptor_consensus``):
+candidates named ``descriptor_<estimator>``.
+
 Verification (:mod:`logdesc_rt.verification`) scores what these propose; which of them run
 is the model's choice (``VerificationConfig.candidates``).
 """
@@ -22,6 +26,7 @@ import numpy as np
 
 from ..config import CANDIDATE_ESTIMATORS, VerificationConfig
 from ..errors import DegenerateGeometryError, TooFewPointsError
+from ..matching import Matches
 from .consistency import consistency_pose
 from .fsr import FsrConfig, fsr
 from .ransac import RansacConfig, ransac
@@ -135,3 +140,39 @@ def unexplained_candidate_poses(
         source_matched[rest], target_matched[rest], confidences[rest], fsr_config, ransac_config, top_k_fraction,
         estimators,
     )
+
+
+DESCRIPTOR_PREFIX = "descriptor_"  # + estimator: the candidates of the descriptors' own matches
+
+
+def descriptor_candidate_poses(
+    source_network: np.ndarray,
+    target_network: np.ndarray,
+    descriptor_matches: Matches,
+    fsr_config: FsrConfig = FsrConfig(),
+    ransac_config: RansacConfig = RansacConfig(),
+    top_k_fraction: float = VerificationConfig.top_k_fraction,
+    estimators: tuple[str, ...] = ("ransac",),
+) -> list[tuple[str, np.ndarray]]:
+    """Candidates of the descriptors' mutual nearest neighbours
+    (:func:`~logdesc_rt.matching.mutual_nearest_descriptors`), named ``descriptor_<estimator>``.
+
+    The matcher's transformer reads both clouds at once; where it settles on a wrong reading
+    (a scan's one-sided surfaces, a part of the shape the other cloud lacks), the descriptors'
+    own matches can still hold the true pose (``benchmarks/results/descriptor_candidates/``).
+
+    Args:
+        source_network, target_network: (N, 3) / (M, 3) float64 working subsets, network units.
+        descriptor_matches: matches indexing them.
+        fsr_config, ransac_config, top_k_fraction, estimators: as for :func:`candidate_poses`.
+
+    Returns:
+        [(name, (4, 4) network-frame pose)]; empty when fewer than three matches.
+    """
+    if len(descriptor_matches) < 3:
+        return []
+    poses = candidate_poses(
+        source_network[descriptor_matches.source_index], target_network[descriptor_matches.target_index],
+        descriptor_matches.confidence, fsr_config, ransac_config, top_k_fraction, estimators,
+    )
+    return [(DESCRIPTOR_PREFIX + name, pose) for name, pose in poses]
