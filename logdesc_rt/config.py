@@ -268,26 +268,26 @@ class VerificationConfig(_DictMixin):
     same_pose_deg: float = 4.0
     turn_over_axes: int = 6
     second_consensus: tuple[str, ...] = ("ransac",)
-    descriptor_consensus: tuple[str, ...] = ()
+    descriptor_consensus: tuple[str, ...] = ("ransac",)
     # A calibration belongs to a model: the one in effect is the model manifest's
     # ("runtime" -> "verification"). These defaults are the shipped model's (v4; held equal to
     # its manifest by tests/test_verification.py), the fit of benchmarks/calibrate_success.py
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
     weights: tuple[float, ...] = (
-        0.2194879797992704,
-        2.306110610431954,
-        -8.60577168244278,
-        0.755135251170222,
-        1.9543700239013788,
-        3.981095162368067,
-        -2.133154465798165,
-        1.065828652012823,
-        2.1905410821845193,
-        -1.0783604752934273,
+        0.20239509558603186,
+        2.2617376431978635,
+        -8.717925585303597,
+        0.8113378138167465,
+        1.797590624786357,
+        4.0519002555878085,
+        -2.3289483431915703,
+        1.020042052213536,
+        2.2711328741575576,
+        -1.0239342838398506,
     )
-    bias: float = 1.1691228557664846
-    success_threshold: float = 0.6002
+    bias: float = 1.5206004765504373
+    success_threshold: float = 0.6175
     seed: int = 0
     candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k", "core")
 

@@ -13,6 +13,7 @@ from logdesc_rt.demo import make_demo_pair
 from logdesc_rt.errors import ModelFileError, NonFinitePointsError, PointCloudFileError, TooFewPointsError
 from logdesc_rt.metrics import rotation_error_deg
 from logdesc_rt.network import bundled_model_dir
+from logdesc_rt.pose.candidates import DESCRIPTOR_PREFIX
 from logdesc_rt.synthetic import make_pair
 from logdesc_rt.verification import TURNED_OVER, UNEXPLAINED_PREFIX
 
@@ -62,13 +63,17 @@ def test_other_estimators(registrar, demo_pair, estimator, bound_deg):
 
 
 def test_the_candidate_set_is_the_configs(registrar, demo_pair):
-    """VerificationConfig.candidates decides which estimators are verified: with "core" added, its
-    pose is among the hypotheses; the model's default set leaves it out."""
+    """VerificationConfig.candidates (on the matcher's matches) and .descriptor_consensus (on the
+    descriptors' own) decide which estimators are verified: with "core" among them, its pose is
+    among the hypotheses; an unknown name is refused."""
     default = registrar.register(demo_pair.source, demo_pair.target)
     names = {name for hypothesis in default.verification.hypotheses for name in hypothesis.estimators}
     # The second look's names: the turn-overs and each candidate on the unexplained matches.
-    estimators = {name.removeprefix(UNEXPLAINED_PREFIX) for name in names if name != TURNED_OVER}
-    assert estimators <= set(registrar.config.verification.candidates)
+    names = {name.removeprefix(UNEXPLAINED_PREFIX) for name in names if name != TURNED_OVER}
+    on_descriptors = {name.removeprefix(DESCRIPTOR_PREFIX) for name in names if name.startswith(DESCRIPTOR_PREFIX)}
+    on_matches = {name for name in names if not name.startswith(DESCRIPTOR_PREFIX)}
+    assert on_matches <= set(registrar.config.verification.candidates)
+    assert on_descriptors <= set(registrar.config.verification.descriptor_consensus)
     candidates = ("fsr", "ransac", "svd", "top_k", "core")
     widened = registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"candidates": candidates}})
     assert "core" in {name for hypothesis in widened.verification.hypotheses for name in hypothesis.estimators}
