@@ -234,7 +234,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     from logdesc_rt.config import RuntimeConfig
     from logdesc_rt.matching import Matches
     from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses
-    from logdesc_rt.pose_selection import verify_candidates
+    from logdesc_rt.pose_selection import coarse_pose, verify_candidates
     from logdesc_rt.verification import PoseVerifier
 
     data = np.load(path)
@@ -265,10 +265,9 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
         rng = np.random.default_rng([SEED, INIT_GROUP_NUMBER, int.from_bytes(path.stem.encode(), "little") % 2**32])
         candidates.append(("init", _near_truth(data["truth"], float(data["scale"]), rng)))
     source_index, target_index = data["source_index"], data["target_index"]
+    source_user, target_user = data["source"][source_index[data["match_source"]]], data["target"][target_index[data["match_target"]]]
     verifier = PoseVerifier(
-        data["source"], data["target"],
-        data["source"][source_index[data["match_source"]]], data["target"][target_index[data["match_target"]]],
-        data["confidence"], float(data["scale"]), config,
+        data["source"], data["target"], source_user, target_user, data["confidence"], float(data["scale"]), config
     )
     verified = verify_candidates(
         verifier, candidates, normalization, source_matched, target_matched, data["confidence"],
@@ -277,6 +276,10 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     truth, scale = data["truth"], float(data["scale"])
     rows = []
     for hypothesis in verified.hypotheses:
+        # What register() returns without ICP were this hypothesis chosen.
+        unrefined = coarse_pose(
+            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config.refit_spacings
+        )
         rows.append({
             "pair": f"{INIT_GROUP if with_init else path.parent.name}/{path.stem}",
             "group": INIT_GROUP if with_init else path.parent.name,
@@ -285,8 +288,8 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
             "features": [hypothesis.features[name] for name in FEATURES],
             "verified_right": is_right(hypothesis.verified_transformation, truth, scale),
             "verified_error_deg": float(rotation_error_deg(hypothesis.verified_transformation[:3, :3], truth[:3, :3])),
-            "unrefined_right": is_right(hypothesis.transformation, truth, scale),
-            "within_verified": verifier.pose_within_verified(hypothesis.transformation, hypothesis),
+            "unrefined_right": is_right(unrefined, truth, scale),
+            "within_verified": verifier.pose_within_verified(unrefined, hypothesis),
         })
     return rows
 
@@ -367,8 +370,9 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         f"Success threshold on the confidence: **{config['success_threshold']:.4f}**.",
         "",
         "The flag on the calibration pairs (in-sample: an optimistic estimate). `refined`: the",
-        "verified (ICP-refined) pose, what `refine=...` returns; `unrefined`: the estimator's own",
-        "pose, claimed only within `same_pose_deg` of its verified pose.",
+        "verified (ICP-refined) pose, what `refine=...` returns; `unrefined`: what `register()`",
+        "returns without ICP (`pose_selection.coarse_pose`: the matches its verified pose explains,",
+        "re-fitted), claimed only within `same_pose_deg` of its verified pose.",
         "",
         "| mode | group | pairs | right | claimed | precision | recall |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
@@ -483,6 +487,7 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "turn_over_axes": fitted.turn_over_axes,
         "second_consensus": list(fitted.second_consensus),
         "descriptor_consensus": list(fitted.descriptor_consensus),
+        "refit_spacings": fitted.refit_spacings,
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

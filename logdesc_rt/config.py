@@ -248,6 +248,12 @@ class VerificationConfig(_DictMixin):
             descriptors' own mutual nearest neighbours (before the matcher's transformer; a
             pair matched outside the runtime, without descriptors, has none); their
             candidates are named ``descriptor_<estimator>``; empty: none.
+        refit_spacings: the pose ``register()`` returns without ICP
+            (:func:`logdesc_rt.pose_selection.coarse_pose`) is the least-squares fit of the
+            learned matches the chosen hypothesis' verified pose explains within this many of
+            the target's working-subset point spacings: a pose from matches, whose inliers the
+            verified pose chose; 0: the estimator's own pose. 2 was chosen on 450
+            validation pairs among 0, 1, 1.5, 2 and 3 (``benchmarks/results/coarse_refit``).
         weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
         bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
         success_threshold: success when confidence >= this.
@@ -269,24 +275,25 @@ class VerificationConfig(_DictMixin):
     turn_over_axes: int = 6
     second_consensus: tuple[str, ...] = ("ransac",)
     descriptor_consensus: tuple[str, ...] = ("ransac",)
+    refit_spacings: float = 2.0
     # A calibration belongs to a model: the one in effect is the model manifest's
     # ("runtime" -> "verification"). These defaults are the shipped model's (v4; held equal to
     # its manifest by tests/test_verification.py), the fit of benchmarks/calibrate_success.py
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
     weights: tuple[float, ...] = (
-        0.20239509558603186,
-        2.2617376431978635,
+        0.20239509558603222,
+        2.2617376431978626,
         -8.717925585303597,
-        0.8113378138167465,
-        1.797590624786357,
-        4.0519002555878085,
-        -2.3289483431915703,
+        0.8113378138167461,
+        1.7975906247863565,
+        4.051900255587809,
+        -2.32894834319157,
         1.020042052213536,
         2.2711328741575576,
-        -1.0239342838398506,
+        -1.0239342838398504,
     )
-    bias: float = 1.5206004765504373
+    bias: float = 1.5206004765504362
     success_threshold: float = 0.6175
     seed: int = 0
     candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k", "core")
@@ -324,6 +331,8 @@ class VerificationConfig(_DictMixin):
             value = getattr(self, name)
             if not 0.0 < value < float("inf"):  # also rejects NaN
                 raise ValueError(f"VerificationConfig.{name} must be finite and > 0, got {value}")
+        if not 0.0 <= self.refit_spacings < float("inf"):  # also rejects NaN
+            raise ValueError(f"VerificationConfig.refit_spacings must be finite and >= 0, got {self.refit_spacings}")
         if self.refine_candidates < 1:
             raise ValueError(f"VerificationConfig.refine_candidates must be >= 1, got {self.refine_candidates}")
         if self.icp_iterations < 1:

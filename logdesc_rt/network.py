@@ -139,9 +139,10 @@ class ModelManifest:
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
-LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": []}
+LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0}
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
-filled in alone; the second look before session 16, the descriptors' candidates before 17)."""
+filled in alone; the second look before session 16, the descriptors' candidates before 17,
+the re-fitted pose without ICP before 18)."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

@@ -5,8 +5,9 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
     mutual matches -> candidate poses (:mod:`logdesc_rt.pose.candidates`, network units, mapped
     back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
-    each is scored, a calibrated confidence) -> the chosen pose -> optional ICP -> fitness /
-    inlier RMSE on the full clouds -> the success flag.
+    each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
+    re-fitted, :func:`coarse_pose`) -> optional ICP -> fitness / inlier RMSE on the full
+    clouds -> the success flag.
 """
 
 from __future__ import annotations
@@ -14,17 +15,21 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from .config import RuntimeConfig
 from .normalization import PairNormalization
 from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
 from .pose.candidates import unexplained_candidate_poses
+from .pose.svd import refine_on_inliers, solve_rigid_batch, to_homogeneous, transformation_inliers
 from .refinement import refine_pose
 from .results import RegistrationResult
 from .threads import one_thread_per_caller
 from .timing import timed
-from .verification import UNEXPLAINED_PREFIX, PoseVerifier, VerificationResult
+from .verification import UNEXPLAINED_PREFIX, Hypothesis, PoseVerifier, VerificationResult
+
+COARSE_REFIT_ROUNDS = 10  # MSAC re-solves of coarse_pose's fit (the inliers settle in a few)
 
 
 def register_matched(
@@ -89,7 +94,11 @@ def register_matched(
     if config.estimator == "auto":
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
-        pose = chosen.transformation  # a turn-over's is its refined pose, the others their estimator's
+        source_matched, target_matched = pair.source_points[correspondences[:, 0]], pair.target_points[correspondences[:, 1]]
+        pose = coarse_pose(
+            chosen, source_matched, target_matched, pair.matches.confidence,
+            pair.target_points[pair.target_index], config.verification.refit_spacings,
+        )
     else:
         chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
         chosen_estimator = config.estimator
@@ -106,8 +115,8 @@ def register_matched(
         with timed(timings, "verification"):
             confidence = verifier.confidence_at(refined, chosen)
     else:
-        # The returned pose is the estimator's own: right only if it is close to the
-        # alignment verification found from it.
+        # The returned pose comes from the matches alone: right only if it is close to the
+        # alignment verification found.
         confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
     success = bool(confidence >= config.verification.success_threshold)
     return _judged_result(
@@ -124,6 +133,52 @@ def register_matched(
             f"{config.verification.success_threshold:.3f}"
         ),
     )
+
+
+def coarse_pose(
+    hypothesis: Hypothesis,
+    source_matched: np.ndarray,
+    target_matched: np.ndarray,
+    confidences: np.ndarray,
+    target_working: np.ndarray,
+    refit_spacings: float,
+) -> np.ndarray:
+    """The pose ``register()`` returns without ICP for a verified hypothesis, user frame.
+
+    The confidence-weighted least-squares pose of the learned matches that the hypothesis'
+    verified pose explains within ``refit_spacings`` target spacings, iterated MSAC-style
+    (:func:`~logdesc_rt.pose.svd.refine_on_inliers`). It is a pose from matches, like the
+    estimators': verification's short ICP only chose which matches are inliers. It beats the
+    estimator's own pose where that one fitted a few matches (FSR, top-k) or sits a few degrees
+    off the alignment verification found (``benchmarks/results/coarse_refit``).
+
+    Args:
+        hypothesis: the chosen hypothesis (its estimator's and its verified pose).
+        source_matched, target_matched: (K, 3) float64 matched points, user frame.
+        confidences: (K,) float64 their match probabilities.
+        target_working: (Mt, 3) the target's working subset, where the matches live: its
+            median nearest-neighbour distance is the spacing.
+        refit_spacings: the inlier distance in those spacings; 0: no refit.
+
+    Returns:
+        (4, 4) float64 pose; the estimator's own (``hypothesis.transformation``) when there is
+        no refit, or fewer than 3 weighted inliers, or a degenerate inlier set.
+    """
+    if refit_spacings <= 0.0 or len(target_working) < 2:
+        return hypothesis.transformation
+    distances, _ = KDTree(target_working).query(target_working, k=2)
+    threshold = refit_spacings * float(np.median(distances[:, 1]))
+    inliers = transformation_inliers(hypothesis.verified_transformation, source_matched, target_matched, threshold**2)
+    inliers &= confidences > 0
+    if np.count_nonzero(inliers) < 3:
+        return hypothesis.transformation
+    rotations, translations, degenerate = solve_rigid_batch(
+        source_matched[inliers][None], target_matched[inliers][None], confidences[inliers][None]
+    )
+    if degenerate[0]:
+        return hypothesis.transformation
+    fitted = to_homogeneous(rotations[0], translations[0])
+    return refine_on_inliers(fitted, source_matched, target_matched, confidences, threshold, COARSE_REFIT_ROUNDS)
 
 
 def verify_candidates(

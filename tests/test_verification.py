@@ -401,6 +401,9 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"second_consensus": ["magic"]}, "second_consensus"),
         ({"descriptor_consensus": "ransac"}, "descriptor_consensus"),
         ({"descriptor_consensus": ["descriptor_ransac"]}, "descriptor_consensus"),
+        ({"refit_spacings": -1.0}, "refit_spacings"),
+        ({"refit_spacings": float("nan")}, "refit_spacings"),
+        ({"refit_spacings": float("inf")}, "refit_spacings"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
@@ -421,12 +424,12 @@ def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
     shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
     manifest = json.loads((model / "manifest.json").read_text())
     assert manifest["runtime"]["verification"]["turn_over_axes"] == 6
-    for key in ("turn_over_axes", "second_consensus", "descriptor_consensus"):
+    for key in ("turn_over_axes", "second_consensus", "descriptor_consensus", "refit_spacings"):
         manifest["runtime"]["verification"].pop(key, None)
     (model / "manifest.json").write_text(json.dumps(manifest))
     verification = Registrar(model).config.verification
     assert verification.turn_over_axes == 0 and verification.second_consensus == ()
-    assert verification.descriptor_consensus == ()
+    assert verification.descriptor_consensus == () and verification.refit_spacings == 0.0
     assert Registrar().config.verification.second_consensus == ("ransac",)
 
 
@@ -445,6 +448,24 @@ def test_a_calibration_stored_before_the_descriptor_candidates_runs_without_them
     (model / "manifest.json").write_text(json.dumps(manifest))
     verification = Registrar(model).config.verification
     assert verification.turn_over_axes == 6 and verification.descriptor_consensus == ()
+
+
+def test_a_calibration_stored_before_the_coarse_refit_returns_the_estimators_pose(tmp_path):
+    """A manifest without ``refit_spacings`` returns the estimator's own pose without ICP (as
+    when it was fitted) and keeps every other setting; the shipped manifest stores its own."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    assert manifest["runtime"]["verification"]["refit_spacings"] > 0
+    manifest["runtime"]["verification"].pop("refit_spacings")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    verification = Registrar(model).config.verification
+    assert verification.refit_spacings == 0.0 and verification.descriptor_consensus == ("ransac",)
 
 
 def test_mutual_nearest_descriptors_keep_only_mutual_best_pairs():
@@ -493,3 +514,67 @@ def test_the_runtime_scores_the_descriptor_candidates_when_configured(registrar,
         demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": []}}
     )
     assert "descriptor_ransac" in names(on) and not any(name.startswith("descriptor_") for name in names(off))
+
+
+def _coarse_hypothesis(estimator_pose: np.ndarray, verified_pose: np.ndarray):
+    from logdesc_rt.verification import Hypothesis
+
+    return Hypothesis(("fsr",), estimator_pose, verified_pose, {}, 0.9, True)
+
+
+def test_coarse_pose_refits_the_matches_the_verified_pose_explains():
+    """Matches: 150 noisy right ones and 100 wrong. From an estimator's pose 4 degrees off and a
+    verified pose 1 degree off, the re-fit lands closer to the truth than either (a least-squares
+    fit of the right matches alone); with 0 spacings it is the estimator's pose, and a verified
+    pose that explains fewer than three matches leaves the estimator's pose too."""
+    from logdesc_rt.pose_selection import coarse_pose
+
+    rng = np.random.default_rng(5)
+    target_working = rng.uniform(-1, 1, size=(800, 3))
+    truth = _rigid([0.2, 0.5, -0.3], [0.3, -0.1, 0.2])
+    source_matched = rng.uniform(-1, 1, size=(250, 3))
+    target_matched = source_matched @ truth[:3, :3].T + truth[:3, 3]
+    target_matched[:150] += rng.normal(scale=0.005, size=(150, 3))
+    target_matched[150:] = rng.uniform(-1, 1, size=(100, 3))
+    confidences = rng.uniform(0.2, 1.0, size=250)
+    centre = source_matched[:150].mean(axis=0)
+    estimator_pose, verified_pose = _turned(truth, 4.0, centre), _turned(truth, 1.0, centre)
+
+    refit = coarse_pose(
+        _coarse_hypothesis(estimator_pose, verified_pose), source_matched, target_matched, confidences,
+        target_working, 2.0,
+    )
+    error = rotation_error_deg(refit[:3, :3], truth[:3, :3])
+    assert error < 0.3 and np.linalg.norm(refit[:3, 3] - truth[:3, 3]) < 0.01
+    assert error < rotation_error_deg(verified_pose[:3, :3], truth[:3, :3])
+
+    hypothesis = _coarse_hypothesis(estimator_pose, verified_pose)
+    kept = coarse_pose(hypothesis, source_matched, target_matched, confidences, target_working, 0.0)
+    assert kept is hypothesis.transformation
+    elsewhere = truth.copy()
+    elsewhere[0, 3] += 5.0  # two radii away: no match within two spacings
+    far = _coarse_hypothesis(estimator_pose, elsewhere)
+    alone = coarse_pose(far, source_matched[:150], target_matched[:150], confidences[:150], target_working, 2.0)
+    assert alone is far.transformation
+
+
+def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(registrar, demo_pair):
+    """register(refine=None) returns coarse_pose of the hypothesis it chose (the estimator's own
+    pose with refit_spacings=0); ICP starts from the verified pose either way."""
+    from logdesc_rt.pose_selection import coarse_pose
+
+    pair = registrar.match(demo_pair.source, demo_pair.target)
+    result = registrar.register_matches(pair, refine=None)
+    chosen = result.verification.best
+    c = pair.correspondences
+    expected = coarse_pose(
+        chosen, pair.source_points[c[:, 0]], pair.target_points[c[:, 1]], pair.matches.confidence,
+        pair.target_points[pair.target_index], registrar.config.verification.refit_spacings,
+    )
+    assert np.array_equal(result.transformation, expected)
+    assert not np.array_equal(expected, chosen.transformation)  # the refit moved it
+    assert rotation_error_deg(expected[:3, :3], demo_pair.true_transformation[:3, :3]) < 2.0
+    own = Registrar(config={"verification": {"refit_spacings": 0.0}}).register(
+        demo_pair.source, demo_pair.target, refine=None
+    )
+    assert np.array_equal(own.transformation, own.verification.best.transformation)
