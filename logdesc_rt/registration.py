@@ -129,7 +129,8 @@ class Registrar:
                 the ``mesh`` extra), registered as seeded points on their surface
                 (:mod:`logdesc_rt.io.mesh`; ``logdesc_rt.io.sample_surface`` picks the count).
             estimator: "auto" (default: every candidate estimator's pose is verified on the
-                full clouds and the best kept), or "fsr" (the paper's), "svd"
+                full clouds and the best kept, then re-fitted on the matches its verified pose
+                explains, ``VerificationConfig.refit_spacings``), or "fsr" (the paper's), "svd"
                 (confidence-weighted, all matches) or "ransac": that estimator's pose, still
                 verified for the success flag.
             refine: None (default), "point_to_point" or "point_to_plane" ICP on the full clouds.

@@ -33,7 +33,9 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs, user units; NaN when there are none
             (``None`` in :meth:`to_dict`).
         max_correspondence_distance: the distance used for fitness and ICP, user units.
-        pose_estimator: the estimator whose pose was kept: "fsr", "ransac", "svd", "top_k",
+        pose_estimator: the estimator whose hypothesis was kept (with ``estimator="auto"``,
+            its pose is returned re-fitted on the matches it explains,
+            :func:`logdesc_rt.pose_selection.coarse_pose`): "fsr", "ransac", "svd", "top_k",
             "core" (see :mod:`logdesc_rt.pose.candidates`), "descriptor_<estimator>" (that
             estimator on the descriptors' own mutual nearest neighbours), "init" (the caller's initial guess),
             verification's second look: "turned_over" (the leading pose turned over, refined)
