@@ -31,6 +31,8 @@ class ConfigResolver:
         # The model's calibration (code defaults for a model without one), parsed once: every
         # resolved config with verification None takes it.
         self.model_verification = model_defaults.verification or VerificationConfig()
+        # The model's working size: its stored runtime setting, else the size it was exported at.
+        self.model_working_size = model_defaults.subsampling.max_points or manifest.points_per_cloud
         self.model_defaults = self.resolved(model_defaults)
 
     def given(self, config: RuntimeConfig | dict | None, base: RuntimeConfig) -> RuntimeConfig:
@@ -51,7 +53,7 @@ class ConfigResolver:
         Raises:
             ValueError: a working size below the geometry's minimum.
         """
-        max_points = config.subsampling.max_points or self.manifest.points_per_cloud
+        max_points = config.subsampling.max_points or self.model_working_size
         min_points = self.manifest.geometry.min_points
         if max_points < min_points:
             raise ValueError(f"max_points {max_points} < {min_points}, the geometry's minimum")

@@ -76,12 +76,13 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .config import VERIFICATION_FEATURES, VerificationConfig
-from .config import DEFAULT_WORKING_SIZE
 from .metrics import rotation_error_deg
 from .refinement import estimate_normals, icp, point_to_point_icp_batch
 from .sampling import seeded_subset
 
-LOG_MATCH_SCALE = math.log1p(DEFAULT_WORKING_SIZE)  # the working size the bundled model was trained at
+# The log_matches feature's fixed scale (every stored calibration was fitted with it; it is
+# not the working size, which may change without refitting).
+LOG_MATCH_SCALE = math.log1p(1024)
 TURNED_OVER = "turned_over"  # the second look's half-turned hypothesis (module docstring)
 # The turn-overs are screened by this short ICP on this many source points before one is refined.
 TURN_OVER_SCREEN_POINTS = 256

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from logdesc_rt import Registrar
 from logdesc_rt.config import (
+    DEFAULT_WORKING_SIZE,
     VERIFICATION_FEATURES,
     FsrConfig,
     RefinementConfig,
@@ -210,7 +211,7 @@ def test_registrar_and_call_configs_are_used_and_reported(demo_pair):
     call = registrar.register(
         demo_pair.source, demo_pair.target, config=RuntimeConfig(), estimator="svd", refine=None
     )
-    assert call.pose_estimator == "svd" and call.config.subsampling.max_points == 1024
+    assert call.pose_estimator == "svd" and call.config.subsampling.max_points == DEFAULT_WORKING_SIZE
     assert call.source_points_used == len(demo_pair.source)
     with pytest.raises(ValueError, match="estimator"):
         registrar.register(demo_pair.source, demo_pair.target, estimator="magic")
