@@ -32,7 +32,7 @@ from common import (  # noqa: E402
     machine_info,
     write_report,
 )
-from scan_pairs import scan_pairs, shape_pairs  # noqa: E402
+from scan_pairs import protocol_pairs  # noqa: E402
 
 from logdesc_rt import Registrar  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
@@ -74,8 +74,7 @@ def main(argv=None) -> int:
     registrar = Registrar(threads=args.threads)
     results = {}
     for protocol in args.protocols:
-        pairs = scan_pairs("val", args.pairs) if protocol == "scan" else shape_pairs("val", protocol, args.pairs)
-        rows = [study_pair(registrar, pair, args.spacings) for pair in pairs]
+        rows = [study_pair(registrar, pair, args.spacings) for pair in protocol_pairs("val", protocol, args.pairs)]
         summary = {
             "pairs": len(rows),
             "verified_right": sum(row["verified"] for row in rows),

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 from common import command_line, machine_info, write_report  # noqa: E402
 from methods import mutual_nearest_descriptors  # noqa: E402
-from scan_pairs import scan_pairs, shape_pairs  # noqa: E402
+from scan_pairs import protocol_pairs  # noqa: E402
 
 from logdesc_rt import Registrar  # noqa: E402
 from logdesc_rt.matching import Matches  # noqa: E402
@@ -88,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     registrar = Registrar(threads=args.threads)
     rows = []
     for protocol in args.protocols:
-        pairs = scan_pairs("val", args.pairs) if protocol == "scan" else shape_pairs("val", protocol, args.pairs)
-        for pair in pairs:
+        for pair in protocol_pairs("val", protocol, args.pairs):
             matched = registrar.match(pair.source, pair.target)
             config = registrar.call_config()
             for reading in ("matcher", "descriptors"):

@@ -105,6 +105,14 @@ def scan_pairs(split: str, count: int, seed: int = 0, data_root: Path = DATA_ROO
                             pair.gt_match_src, pair.normalization.scale)
 
 
+def protocol_pairs(split: str, protocol: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT):
+    """``count`` pairs of a split: raw scan pairs for ``protocol == "scan"``, else the shape
+    protocol's (:func:`scan_pairs`, :func:`shape_pairs`)."""
+    if protocol == "scan":
+        return scan_pairs(split, count, seed, data_root)
+    return shape_pairs(split, protocol, count, seed, data_root)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=60)
@@ -131,8 +139,7 @@ def main(argv=None) -> int:
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
                         baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
     sizes = []
-    pairs = (scan_pairs(args.split, args.pairs, args.seed) if args.protocol == "scan"
-             else shape_pairs(args.split, args.protocol, args.pairs, args.seed))
+    pairs = protocol_pairs(args.split, args.protocol, args.pairs, args.seed)
     for pair in tqdm(pairs, total=args.pairs, desc=f"{args.protocol} pairs", unit="pair"):
         sizes.append((len(pair.source), len(pair.target)))
         to_run = [m for m in methods if not cache.has(pair.protocol, pair.index, [m])]

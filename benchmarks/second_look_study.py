@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from common import RESULTS, command_line, machine_info, write_report  # noqa: E402
-from scan_pairs import scan_pairs, shape_pairs  # noqa: E402
+from scan_pairs import protocol_pairs  # noqa: E402
 
 from logdesc_rt import Registrar  # noqa: E402
 from logdesc_rt.config import CANDIDATE_ESTIMATORS  # noqa: E402
@@ -111,8 +111,7 @@ def main(argv=None) -> int:
     registrar = Registrar(threads=args.threads)
     results = {}
     for protocol in args.protocols:
-        pairs = scan_pairs("val", args.pairs) if protocol == "scan" else shape_pairs("val", protocol, args.pairs)
-        rows = [study_pair(registrar, pair) for pair in pairs]
+        rows = [study_pair(registrar, pair) for pair in protocol_pairs("val", protocol, args.pairs)]
         results[protocol] = {"summary": summarize(rows), "rows": rows}
         print(protocol, results[protocol]["summary"], flush=True)
     labels = list(next(iter(results.values()))["summary"]["rescued"])
