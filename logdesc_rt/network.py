@@ -126,20 +126,21 @@ class ModelManifest:
         four estimators of its day, and keeps them: its ``agreement`` feature counts among them.
         One stored without the second look's settings (before session 16) was fitted without
         it, and runs without it: its ``margin`` feature never met a turn-over as a rival. One
-        stored without ``descriptor_consensus`` runs without the descriptors' candidates."""
+        stored without ``descriptor_consensus`` runs without the descriptors' candidates, and
+        one without ``refit_spacings`` returns the estimator's own pose without ICP."""
         runtime = dict(self.runtime)
         verification = runtime.get("verification")
         if isinstance(verification, dict):
             legacy = {"candidates": list(LEGACY_CANDIDATES)}
             if "weights" in verification:  # a stored calibration
-                legacy.update(LEGACY_FIRST_LOOK_ONLY)
+                legacy.update(LEGACY_VERIFICATION_OFF)
             runtime["verification"] = {**legacy, **verification}
         return RuntimeConfig.from_dict(runtime)
 
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
-LEGACY_FIRST_LOOK_ONLY = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0}
+LEGACY_VERIFICATION_OFF = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0}
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
 filled in alone; the second look before session 16, the descriptors' candidates before 17,
 the re-fitted pose without ICP before 18)."""

@@ -557,6 +557,11 @@ def test_coarse_pose_refits_the_matches_the_verified_pose_explains():
     far = _coarse_hypothesis(estimator_pose, elsewhere)
     alone = coarse_pose(far, source_matched[:150], target_matched[:150], confidences[:150], target_working, 2.0)
     assert alone is far.transformation
+    # Inliers all on one line fix no rotation about it: the estimator's pose, not a guess.
+    line = np.outer(np.linspace(-1.0, 1.0, 50), [1.0, 0.2, -0.3])
+    on_line = line @ truth[:3, :3].T + truth[:3, 3]
+    straight = coarse_pose(hypothesis, line, on_line, np.full(50, 0.5), target_working, 2.0)
+    assert straight is hypothesis.transformation
 
 
 def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(registrar, demo_pair):
