@@ -328,6 +328,81 @@ def summarize(records: list[dict]) -> dict[str, float]:
     return metrics
 
 
+OVERLAP_BINS = (0.0, 0.4, 0.6, 0.8, 1.0)  # bin edges; each bin holds its lower edge, the last one also 1
+OVERLAP_SPACINGS = 2.0  # "near": within this many median point spacings of the sparser cloud
+
+
+def overlap_ratio(source: np.ndarray, target: np.ndarray, T_gt: np.ndarray) -> float:
+    """How much two clouds see of the same surface, in the true pose.
+
+    A point lies in the overlap when the other cloud, in the true pose, has a point within
+    ``OVERLAP_SPACINGS`` median nearest-neighbour spacings (of the sparser of the two clouds,
+    so that a denser cloud does not lower the share of a sparse one). The ratio is the smaller
+    of the two clouds' shares: a pair where either cloud sees mostly what the other does not is
+    a low-overlap pair.
+
+    Args:
+        source: (N, 3) source points, user units.
+        target: (M, 3) target points, the same units.
+        T_gt: (4, 4) true pose source -> target.
+
+    Returns:
+        Overlap ratio in [0, 1].
+    """
+    from scipy.spatial import cKDTree
+
+    moved = source @ T_gt[:3, :3].T + T_gt[:3, 3]
+    trees = cKDTree(moved), cKDTree(target)
+    spacing = max(float(np.median(tree.query(tree.data, k=2)[0][:, 1])) for tree in trees)
+    near = OVERLAP_SPACINGS * spacing
+    source_share = float(np.mean(trees[1].query(moved)[0] < near))
+    target_share = float(np.mean(trees[0].query(target)[0] < near))
+    return min(source_share, target_share)
+
+
+def overlap_bin_label(lower: float, upper: float) -> str:
+    return f"{lower:.1f}-{upper:.1f}"
+
+
+def success_by_overlap(records: dict[str, list[dict]], overlaps: dict[int, float]) -> dict[str, dict[str, dict]]:
+    """Per method, the pairs and successes in each overlap bin (``OVERLAP_BINS``).
+
+    Args:
+        records: method -> its pair records (each with an ``index``).
+        overlaps: pair index -> :func:`overlap_ratio`.
+
+    Returns:
+        method -> bin label -> {"pairs", "successes", "success"} (success a share, NaN for an
+        empty bin).
+    """
+    edges = list(OVERLAP_BINS)
+    table = {}
+    for method, method_records in records.items():
+        bins = {}
+        for lower, upper in zip(edges, edges[1:]):
+            last = upper == edges[-1]
+            inside = [r for r in method_records
+                      if lower <= overlaps[r["index"]] and (overlaps[r["index"]] < upper or last)]
+            successes = sum(is_success(r) for r in inside)
+            bins[overlap_bin_label(lower, upper)] = {
+                "pairs": len(inside), "successes": int(successes),
+                "success": successes / len(inside) if inside else float("nan")}
+        table[method] = bins
+    return table
+
+
+def overlap_markdown_table(table: dict[str, dict[str, dict]]) -> str:
+    """Successes / pairs per overlap bin, one row per method (:func:`success_by_overlap`)."""
+    labels = list(next(iter(table.values())))
+    lines = ["| method | " + " | ".join(f"overlap {label}" for label in labels) + " |",
+             "| --- | " + " | ".join("---:" for _ in labels) + " |"]
+    for method, bins in table.items():
+        cells = [f"{b['successes']}/{b['pairs']}" + (f" ({100 * b['success']:.0f} %)" if b["pairs"] else "")
+                 for b in bins.values()]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 COLUMNS = [
     ("RMSE(R)", "rmse_r", "{:.3f}"),
     ("MAE(R)", "mae_r", "{:.3f}"),

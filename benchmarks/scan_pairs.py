@@ -21,7 +21,8 @@ that model selection can check ModelNet-style pairs on the same held-out shapes.
 Methods: ``register()`` as a user calls it (verified candidates, the success flag), without and
 with point-to-plane ICP; Open3D FPFH + RANSAC and FPFH + FGR (parameters tuned on ModelNet
 validation pairs, ``tune_open3d.py``), each without and with the same ICP. Success: rotation
-error < 5 deg and translation error < 5 % of the object's radius. Writes
+error < 5 deg and translation error < 5 % of the object's radius, overall and by the pairs' overlap
+(``common.overlap_ratio``). Writes
 ``benchmarks/results/scan_pairs_<split>.{md,json}`` and the per-pair records
 (``..._pairs.jsonl.gz``).
 """
@@ -40,6 +41,7 @@ from tqdm import tqdm  # noqa: E402
 
 from common import (  # noqa: E402
     DATA_ROOT,
+    OVERLAP_SPACINGS,
     RESULTS,
     BenchmarkPair,
     ResultCache,
@@ -48,7 +50,10 @@ from common import (  # noqa: E402
     machine_info,
     markdown_table,
     model_description,
+    overlap_markdown_table,
+    overlap_ratio,
     pair_record,
+    success_by_overlap,
     summarize,
     write_report,
 )
@@ -138,16 +143,20 @@ def main(argv=None) -> int:
     runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
                         baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
-    sizes = []
+    sizes, overlaps = [], {}
     pairs = protocol_pairs(args.split, args.protocol, args.pairs, args.seed)
     for pair in tqdm(pairs, total=args.pairs, desc=f"{args.protocol} pairs", unit="pair"):
         sizes.append((len(pair.source), len(pair.target)))
+        overlaps[pair.index] = overlap_ratio(pair.source, pair.target, pair.T_gt)
         to_run = [m for m in methods if not cache.has(pair.protocol, pair.index, [m])]
         if to_run:
             results = runner.run(pair.source, pair.target, seed=pair.index, methods=to_run)
             cache.add(pair_record(pair, method, result) for method, result in results.items())
 
-    summary = {method: summarize(cache.select(args.protocol, method, range(args.pairs))) for method in methods}
+    records = {method: cache.select(args.protocol, method, range(args.pairs)) for method in methods}
+    summary = {method: summarize(method_records) for method, method_records in records.items()}
+    by_overlap = success_by_overlap(records, overlaps)
+    overlap_values = np.array(list(overlaps.values()))
     sizes = np.array(sizes)
     size_text = f"{int(sizes.min())}-{int(sizes.max())} points (median {int(np.median(sizes))})"
     if args.protocol == "scan":
@@ -176,10 +185,20 @@ def main(argv=None) -> int:
         "",
         markdown_table(summary),
         "",
+        "## Success by overlap",
+        "",
+        "Overlap: the smaller of the two clouds' shares of points that have a point of the other cloud, in the "
+        f"true pose, within {OVERLAP_SPACINGS:g} median point spacings (`benchmarks/common.py: overlap_ratio`); "
+        f"these pairs' overlaps span {overlap_values.min():.2f}-{overlap_values.max():.2f} "
+        f"(median {np.median(overlap_values):.2f}). Successes / pairs in each bin:",
+        "",
+        overlap_markdown_table(by_overlap),
+        "",
     ]
     markdown = "\n".join(lines)
     write_report(stem, markdown, {"command": command_line(), "machine": machine_info(), "split": args.split,
                                   "pairs": args.pairs, "seed": args.seed, "summary": summary,
+                                  "success_by_overlap": by_overlap, "overlaps": overlaps,
                                   "per_pair_file": f"{stem}_pairs.jsonl.gz"}, args.out)
     cache.pack()
     print(markdown)

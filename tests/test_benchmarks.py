@@ -63,6 +63,33 @@ def test_summarize_reports_the_success_flags_precision_and_recall():
     assert np.isnan(common.summarize([_record(0.0, 0.0)])["flag_precision"])  # no flag recorded
 
 
+def test_overlap_ratio_is_one_for_the_same_surface_and_the_smaller_share_otherwise():
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30), indexing="ij"), -1).reshape(-1, 2)
+    plane = np.column_stack([grid, np.zeros(len(grid))])
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pose[:3, 3] = [2.0, -1.0, 0.5]
+    moved = plane @ pose[:3, :3].T + pose[:3, 3]
+    assert common.overlap_ratio(plane, moved, pose) == 1.0
+    # The target sees only the plane's first third: all of it overlaps, a third of the source does.
+    third = plane[:, 0] < 0.3
+    assert common.overlap_ratio(plane, moved[third], pose) == pytest.approx(third.mean(), abs=0.04)
+    # A wrong pose places the clouds apart: no overlap.
+    assert common.overlap_ratio(plane, moved + 5.0, pose) == 0.0
+
+
+def test_success_by_overlap_bins_each_pair_once_and_counts_its_successes():
+    records = {"m": [_record(1.0, 0.0, index=0), _record(30.0, 0.0, index=1), _record(1.0, 0.0, index=2),
+                     _record(1.0, 0.0, index=3)]}
+    overlaps = {0: 0.1, 1: 0.45, 2: 0.45, 3: 1.0}
+    table = common.success_by_overlap(records, overlaps)["m"]
+    assert [b["pairs"] for b in table.values()] == [1, 2, 0, 1]
+    assert [b["successes"] for b in table.values()] == [1, 1, 0, 1]
+    assert table["0.4-0.6"]["success"] == 0.5 and np.isnan(table["0.6-0.8"]["success"])
+    assert "1/2 (50 %)" in common.overlap_markdown_table({"m": table})
+
+
 def test_verified_methods_are_what_register_returns(shared_data):
     """logdesc_auto(_icp) record register()'s pose and flag, from the shared matches."""
     from logdesc_rt import Registrar
