@@ -50,15 +50,14 @@ from common import (  # noqa: E402
 )
 from methods import (  # noqa: E402
     ALL_METHODS,
-    OPEN3D_METHODS,
     REFINED_FROM,
     REFINEMENT_ID,
     TUNING_FILE,
     FpfhParameters,
     MethodResult,
     MethodRunner,
-    open3d_available,
     parameters_dict,
+    runnable_methods,
     refine_pose,
 )
 from plots import error_cdf  # noqa: E402
@@ -154,11 +153,7 @@ def class_breakdown(cache: ResultCache, methods: list[str], args) -> list[str]:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    methods = list(args.methods)
-    if not open3d_available():
-        skipped = [m for m in methods if m in OPEN3D_METHODS]
-        methods = [m for m in methods if m not in OPEN3D_METHODS]
-        print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
+    methods = runnable_methods(args.methods)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
     # Refined methods start from a coarse method's cached pose: ICP alone, no second network pass.
     refined = [m for m in methods if m in REFINED_FROM]

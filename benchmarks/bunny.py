@@ -82,11 +82,10 @@ from common import (  # noqa: E402
 )
 from methods import (  # noqa: E402
     ALL_METHODS,
-    OPEN3D_METHODS,
     MethodRunner,
     REFINEMENT_ID,
-    open3d_available,
     parameters_dict,
+    runnable_methods,
 )
 from plots import error_cdf  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
@@ -607,13 +606,7 @@ def main(argv=None) -> int:
         write_report(FLAG_STEM, markdown, payload, args.out)
         print(markdown)
         return 0
-    methods = list(args.methods)
-    if not open3d_available():
-        # fpfh_fgr_icp needs Open3D's FGR too, though OPEN3D_METHODS does not list it.
-        skipped = [m for m in methods if m in OPEN3D_METHODS or m.startswith("fpfh")]
-        methods = [m for m in methods if m not in skipped]
-        print(f"open3d is not installed (pip install open3d): skipping {skipped}",
-              file=sys.stderr)
+    methods = runnable_methods(args.methods)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
     runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),

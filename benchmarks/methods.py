@@ -41,6 +41,7 @@ descriptor-only methods the geometry + descriptor network time plus the Open3D e
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass
 from hashlib import sha256
@@ -169,6 +170,16 @@ def open3d_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+def runnable_methods(methods: list[str]) -> list[str]:
+    """``methods`` less those that need Open3D when it is not installed (said on stderr, so
+    that a report written without the baselines' rows does not go unnoticed)."""
+    if open3d_available():
+        return list(methods)
+    skipped = [m for m in methods if m in OPEN3D_METHODS]
+    print(f"open3d is not installed (pip install open3d): skipping {skipped}", file=sys.stderr)
+    return [m for m in methods if m not in OPEN3D_METHODS]
 
 
 def _cloud(points: np.ndarray, normal_radius: float | None = None):

@@ -57,7 +57,7 @@ from common import (  # noqa: E402
     summarize,
     write_report,
 )
-from methods import OPEN3D_METHODS, REFINEMENT_ID, FpfhParameters, MethodRunner, open3d_available  # noqa: E402
+from methods import REFINEMENT_ID, FpfhParameters, MethodRunner, runnable_methods  # noqa: E402
 
 from logdesc_rt.scan_simulation import make_scan_pair  # noqa: E402
 from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS  # noqa: E402
@@ -134,11 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    methods = list(args.methods)
-    if not open3d_available():
-        skipped = [m for m in methods if m in OPEN3D_METHODS]
-        methods = [m for m in methods if m not in OPEN3D_METHODS]
-        print(f"open3d is not installed: skipping {skipped}", file=sys.stderr)
+    methods = runnable_methods(args.methods)
     stem = f"scan_pairs_{args.split}" if args.protocol == "scan" else f"heldout_{args.protocol}_{args.split}"
     runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
