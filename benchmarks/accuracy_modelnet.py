@@ -57,8 +57,8 @@ from methods import (  # noqa: E402
     MethodResult,
     MethodRunner,
     parameters_dict,
-    runnable_methods,
     refine_pose,
+    runnable_methods,
 )
 from plots import error_cdf  # noqa: E402
 
