@@ -26,6 +26,7 @@ from hashlib import sha256
 from pathlib import Path
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # scripts run as `python benchmarks/x.py` from the project root
@@ -349,19 +350,15 @@ def overlap_ratio(source: np.ndarray, target: np.ndarray, T_gt: np.ndarray) -> f
     Returns:
         Overlap ratio in [0, 1].
     """
-    from scipy.spatial import cKDTree
-
-    moved = source @ T_gt[:3, :3].T + T_gt[:3, 3]
-    trees = cKDTree(moved), cKDTree(target)
-    spacing = max(float(np.median(tree.query(tree.data, k=2)[0][:, 1])) for tree in trees)
+    moved = np.ascontiguousarray(source @ T_gt[:3, :3].T + T_gt[:3, 3])
+    target = np.ascontiguousarray(target, dtype=np.float64)
+    moved_tree, target_tree = KDTree(moved), KDTree(target)
+    spacing = max(float(np.median(tree.query(points, k=2)[0][:, 1]))
+                  for tree, points in ((moved_tree, moved), (target_tree, target)))
     near = OVERLAP_SPACINGS * spacing
-    source_share = float(np.mean(trees[1].query(moved)[0] < near))
-    target_share = float(np.mean(trees[0].query(target)[0] < near))
+    source_share = float(np.mean(target_tree.query(moved, k=1)[0] < near))
+    target_share = float(np.mean(moved_tree.query(target, k=1)[0] < near))
     return min(source_share, target_share)
-
-
-def overlap_bin_label(lower: float, upper: float) -> str:
-    return f"{lower:.1f}-{upper:.1f}"
 
 
 def success_by_overlap(records: dict[str, list[dict]], overlaps: dict[int, float]) -> dict[str, dict[str, dict]]:
@@ -384,7 +381,7 @@ def success_by_overlap(records: dict[str, list[dict]], overlaps: dict[int, float
             inside = [r for r in method_records
                       if lower <= overlaps[r["index"]] and (overlaps[r["index"]] < upper or last)]
             successes = sum(is_success(r) for r in inside)
-            bins[overlap_bin_label(lower, upper)] = {
+            bins[f"{lower:.1f}-{upper:.1f}"] = {
                 "pairs": len(inside), "successes": int(successes),
                 "success": successes / len(inside) if inside else float("nan")}
         table[method] = bins

@@ -43,7 +43,7 @@ from common import (  # noqa: E402
     model_description,
     write_report,
 )
-from methods import MethodRunner, open3d_available  # noqa: E402
+from methods import MethodRunner, open3d_available, runnable_methods  # noqa: E402
 
 from logdesc_rt.io import DEFAULT_SURFACE_SAMPLES, read_mesh, read_point_cloud, read_stanford_conf  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     source = mesh.sample(DEFAULT_SURFACE_SAMPLES, seed=0)
     radius = float(np.linalg.norm(source - source.mean(axis=0), axis=1).max())
     poses = read_stanford_conf(folder / "data" / "bun.conf")
-    methods = LEARNED + (CLASSICAL if open3d_available() else ())
+    methods = runnable_methods(LEARNED + CLASSICAL)
     runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
 
     rows = []

@@ -40,7 +40,7 @@ from common import (  # noqa: E402
     modelnet10_test_pairs,
     write_report,
 )
-from methods import FpfhParameters, MethodRunner, open3d_available  # noqa: E402
+from methods import FpfhParameters, MethodRunner, runnable_methods  # noqa: E402
 
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
 
@@ -111,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    methods = [m for m in METHODS if m.startswith("logdesc") or open3d_available()]
+    methods = runnable_methods(METHODS)
     runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
     sets = {
         "ModelNet10 test, noisy + partial, any relative rotation": list(
