@@ -77,13 +77,17 @@ from common import (  # noqa: E402
     machine_info,
     markdown_table,
     pair_record,
+    project_relative,
     summarize,
     write_report,
 )
 from methods import (  # noqa: E402
     ALL_METHODS,
-    MethodRunner,
     REFINEMENT_ID,
+    SCAN_TUNING_FILE,
+    TUNING_FILE,
+    FpfhParameters,
+    MethodRunner,
     parameters_dict,
     runnable_methods,
 )
@@ -363,9 +367,10 @@ def per_pair_table(
     return "\n".join(lines)
 
 
-def report(args, scans, overlaps, selection, real_pairs, records, summary, runner,
+def report(args, scans, overlaps, selection, real_pairs, records, summary, runners,
            cache_name: str, wall_seconds: float) -> tuple[str, dict]:
-    """The markdown report and the JSON payload."""
+    """The markdown report and the JSON payload (``runners``: part -> its MethodRunner)."""
+    runner = runners[PAPER_PROTOCOL]
     kept = ", ".join(
         f"{pair_name(scans, p)} ({100 * p.overlap:.1f} %)" for p in selection
     )
@@ -398,8 +403,11 @@ def report(args, scans, overlaps, selection, real_pairs, records, summary, runne
         f"Command: `{command_line()}`",
         f"Machine: {machine_info()}",
         f"Wall time of this run: {wall_seconds:.0f} s (cached pairs are not re-run).",
-        "Open3D parameters (network units, object radius = 1; chosen on ModelNet "
-        f"validation pairs by `tune_open3d.py`): {parameters_dict(runner.parameters)}",
+        "Open3D parameters (network units, object radius = 1), chosen by `tune_open3d.py` on validation pairs "
+        "of each part's kind: for (a) on ModelNet pairs "
+        f"(`{project_relative(args.open3d_tuning)}`): {parameters_dict(runner.parameters)}; for (b) on "
+        f"simulated range scans (`{project_relative(args.real_open3d_tuning)}`): "
+        f"{parameters_dict(runners[REAL_PAIRS].parameters)}.",
         "",
         f"## {PART_TITLES[PAPER_PROTOCOL]}",
         "",
@@ -488,7 +496,9 @@ def report(args, scans, overlaps, selection, real_pairs, records, summary, runne
             "radius_m": {pair.name: pair.scale for pair in real_pairs},
             "all_overlaps": all_overlaps,
         },
-        "open3d_parameters": parameters_dict(runner.parameters),
+        "open3d_tuning": {PAPER_PROTOCOL: str(project_relative(args.open3d_tuning)),
+                          REAL_PAIRS: str(project_relative(args.real_open3d_tuning))},
+        "open3d_parameters": {part: parameters_dict(part_runner.parameters) for part, part_runner in runners.items()},
         "summary": summary,
         "published": {
             "logdesc": PUBLISHED["bunny"],
@@ -589,6 +599,12 @@ def build_parser() -> argparse.ArgumentParser:
                              "use another --out: the per-pair cache is per model")
     parser.add_argument("--fresh", action="store_true",
                         help="ignore cached per-pair results")
+    parser.add_argument("--open3d-tuning", type=Path, default=TUNING_FILE,
+                        help="Open3D's parameters for (a), a tune_open3d.py open3d_tuning.json (default: the "
+                             "sweep on ModelNet validation pairs, whose kind (a) is)")
+    parser.add_argument("--real-open3d-tuning", type=Path, default=SCAN_TUNING_FILE,
+                        help="Open3D's parameters for (b)'s real scan pairs (default: the sweep on simulated "
+                             "scans of validation shapes, methods.SCAN_TUNING_FILE)")
     parser.add_argument("--flag-only", action="store_true",
                         help="run part (c) alone: the success flag's precision / recall on the real pairs")
     return parser
@@ -608,9 +624,17 @@ def main(argv=None) -> int:
         return 0
     methods = runnable_methods(args.methods)
     cache_path = args.out / f"{STEM}_pairs.jsonl"
-    runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
+    # Each part gives Open3D the parameters tuned on validation pairs of its own kind; the
+    # learned methods share one registrar.
+    runner = MethodRunner(methods, FpfhParameters.tuned(args.open3d_tuning), threads=args.threads,
+                          model_dir=args.model_dir)
+    runners = {
+        PAPER_PROTOCOL: runner,
+        REAL_PAIRS: MethodRunner(methods, FpfhParameters.tuned(args.real_open3d_tuning), registrar=runner.registrar),
+    }
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
-                        baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
+                        baseline_id={part: part_runner.parameters.fingerprint() for part, part_runner in runners.items()},
+                        refinement_id=REFINEMENT_ID)
 
     scans = load_scans()
     print(f"measuring the overlaps of {len(scans)} scans ...", file=sys.stderr)
@@ -627,7 +651,7 @@ def main(argv=None) -> int:
             # Only what the cache lacks: after a model change, the learned methods alone.
             to_run = [m for m in methods if not is_cached(cache, pair, [m])]
             if to_run:
-                results = runner.run(pair.source, pair.target, seed=pair.index, methods=to_run)
+                results = runners[pair.protocol].run(pair.source, pair.target, seed=pair.index, methods=to_run)
                 cache.add(pair_record(pair, m, result) for m, result in results.items())
             indices[pair.protocol].append(pair.index)
             bar.update(1)
@@ -642,7 +666,7 @@ def main(argv=None) -> int:
     }
     wall_seconds = time.perf_counter() - started
     markdown, payload = report(args, scans, overlaps, selection, real_pairs, records,
-                               summary, runner, cache_path.name + ".gz", wall_seconds)
+                               summary, runners, cache_path.name + ".gz", wall_seconds)
     write_report(STEM, markdown, payload, args.out)
     cache.pack()  # the gzipped per-pair records kept in the repository
     error_cdf(

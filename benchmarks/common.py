@@ -20,7 +20,7 @@ import os
 import platform
 import subprocess
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from hashlib import sha256
 from pathlib import Path
@@ -177,6 +177,15 @@ def is_learned_method(method: str) -> bool:
     return method.startswith(LEARNED_METHOD_PREFIX)
 
 
+DESCRIPTOR_METHOD_PREFIX = "logdesc_desc_"
+
+
+def uses_open3d_estimator(method: str) -> bool:
+    """Whether a learned method feeds Open3D's estimators, with the baselines' parameters
+    (the descriptor-only ``logdesc_desc_*`` methods): its results depend on both."""
+    return method.startswith(DESCRIPTOR_METHOD_PREFIX)
+
+
 REFINED_METHOD_SUFFIX = "_icp"
 
 
@@ -222,14 +231,17 @@ class ResultCache:
     With ``model_id`` (:func:`bundled_model_id`), records of learned methods are stamped with
     it ("model"), and on loading those of another model (or of none) are dropped from the
     file: they are re-run, while the classical methods' records stay. ``baseline_id``
-    (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline");
+    (``FpfhParameters.fingerprint()``) does the same for the classical methods ("baseline"):
+    one id, or a mapping protocol -> id where a benchmark gives Open3D other parameters for
+    each part (``bunny.py``: ModelNet's for the paper protocol, the scans' for real pairs);
     the classical rows refined by ICP (:func:`is_refined_method`) are stamped with
     ``refinement_id`` (``methods.REFINEMENT_ID``) beside it, so that they are re-run when the
-    ICP changes while the coarse rows they start from stay.
+    ICP changes while the coarse rows they start from stay; the descriptor-only rows
+    (:func:`uses_open3d_estimator`) carry both the model and the baseline parameters.
     """
 
     def __init__(self, path: Path, fresh: bool = False, model_id: str | None = None,
-                 baseline_id: str | None = None, refinement_id: str | None = None) -> None:
+                 baseline_id: str | Mapping[str, str] | None = None, refinement_id: str | None = None) -> None:
         self.path = Path(path)
         self.model_id = model_id
         self.baseline_id = baseline_id
@@ -252,16 +264,19 @@ class ResultCache:
             if self.stale:  # rewrite without them, so that the kept copy holds one model's results
                 self.path.write_text("".join(json.dumps(r) + "\n" for r in self.records.values()))
 
-    def _stamp(self, method: str) -> tuple[str, str | None]:
+    def _stamp(self, method: str, protocol: str) -> tuple[str, str | None]:
         """The field a method's records are stamped with, and the value this cache wants."""
+        baseline = self.baseline_id.get(protocol) if isinstance(self.baseline_id, Mapping) else self.baseline_id
         if is_learned_method(method):
+            if uses_open3d_estimator(method) and self.model_id is not None and baseline is not None:
+                return "model", f"{self.model_id}; open3d {baseline}"
             return "model", self.model_id
-        if is_refined_method(method) and self.baseline_id is not None and self.refinement_id is not None:
-            return "baseline", f"{self.baseline_id}; icp {self.refinement_id}"
-        return "baseline", self.baseline_id
+        if is_refined_method(method) and baseline is not None and self.refinement_id is not None:
+            return "baseline", f"{baseline}; icp {self.refinement_id}"
+        return "baseline", baseline
 
     def _is_stale(self, record: dict) -> bool:
-        field, wanted = self._stamp(record["method"])
+        field, wanted = self._stamp(record["method"], record["protocol"])
         return wanted is not None and record.get(field) != wanted
 
     def has(self, protocol: str, index: int, methods: Iterable[str]) -> bool:
@@ -271,7 +286,7 @@ class ResultCache:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.path.open("a") as handle:
             for record in records:
-                field, wanted = self._stamp(record["method"])
+                field, wanted = self._stamp(record["method"], record["protocol"])
                 if wanted is not None:
                     record = {**record, field: wanted}
                 self.records[(record["protocol"], record["index"], record["method"])] = record

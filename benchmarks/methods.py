@@ -31,7 +31,8 @@ radius too.
 
 Open3D parameters (``FpfhParameters``) were chosen on *validation* pairs (held-out training
 shapes, never the test split) by ``benchmarks/tune_open3d.py``; the chosen values and the
-sweep are in ``benchmarks/results/open3d_tuning.md``.
+sweep are in ``benchmarks/results/open3d_tuning.md``; the range-scan benchmarks use the same sweep
+run on simulated scan pairs of validation shapes (``SCAN_TUNING_FILE``).
 
 Timing: ``seconds`` is the method's own wall time on the pair, network included; the logdesc
 estimators each report the shared matching time plus their own pose time, and the
@@ -71,6 +72,9 @@ ALL_METHODS = (
 OPEN3D_METHODS = DESCRIPTOR_METHODS + FPFH_METHODS + ICP_METHODS + ("fpfh_fgr_icp", "fpfh_ransac_icp")
 
 TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning.json"
+# The same sweep on raw simulated range-scan pairs of validation shapes (``tune_open3d.py
+# --protocols scan``): what the range-scan benchmarks (simulated and real) give Open3D.
+SCAN_TUNING_FILE = Path(__file__).resolve().parent / "results" / "open3d_tuning_scans" / "open3d_tuning.json"
 
 
 @dataclass(frozen=True)

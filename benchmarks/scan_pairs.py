@@ -19,8 +19,10 @@ for model selection. Pair i uses dense shape ``i % S`` and ``default_rng([seed, 
 that model selection can check ModelNet-style pairs on the same held-out shapes.
 
 Methods: ``register()`` as a user calls it (verified candidates, the success flag), without and
-with point-to-plane ICP; Open3D FPFH + RANSAC and FPFH + FGR (parameters tuned on ModelNet
-validation pairs, ``tune_open3d.py``), each without and with the same ICP. Success: rotation
+with point-to-plane ICP; Open3D FPFH + RANSAC and FPFH + FGR, each without and with the same ICP,
+with parameters tuned on validation pairs of the same kind (``tune_open3d.py``): on simulated
+scans of validation shapes for ``--protocol scan`` (``methods.SCAN_TUNING_FILE``), on ModelNet
+validation pairs for the shape protocols; ``--open3d-tuning`` names another sweep. Success: rotation
 error < 5 deg and translation error < 5 % of the object's radius, overall and by the pairs' overlap
 (``common.overlap_ratio``). Writes
 ``benchmarks/results/scan_pairs_<split>.{md,json}`` and the per-pair records
@@ -50,6 +52,7 @@ from common import (  # noqa: E402
     machine_info,
     markdown_table,
     model_description,
+    project_relative,
     overlap_markdown_table,
     overlap_ratio,
     pair_record,
@@ -57,7 +60,15 @@ from common import (  # noqa: E402
     summarize,
     write_report,
 )
-from methods import REFINEMENT_ID, FpfhParameters, MethodRunner, runnable_methods  # noqa: E402
+from methods import (  # noqa: E402
+    REFINEMENT_ID,
+    SCAN_TUNING_FILE,
+    TUNING_FILE,
+    FpfhParameters,
+    MethodRunner,
+    parameters_dict,
+    runnable_methods,
+)
 
 from logdesc_rt.scan_simulation import make_scan_pair  # noqa: E402
 from logdesc_rt.synthetic import PROTOCOLS as SHAPE_PROTOCOLS  # noqa: E402
@@ -129,14 +140,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model-dir", type=Path, default=None, help="an exported model instead of the bundled one")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--fresh", action="store_true", help="ignore cached per-pair results")
+    parser.add_argument("--open3d-tuning", type=Path, default=None,
+                        help="Open3D's parameters (a tune_open3d.py open3d_tuning.json; default: the sweep on "
+                             "validation scans for --protocol scan, on ModelNet validation pairs otherwise)")
     return parser
+
+
+def open3d_tuning_file(protocol: str, chosen: Path | None = None) -> Path:
+    """The Open3D sweep a protocol's baselines use: ``chosen``, else the one on its own kind of
+    validation pairs (scans for ``"scan"``)."""
+    if chosen is not None:
+        return chosen
+    return SCAN_TUNING_FILE if protocol == "scan" else TUNING_FILE
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     methods = runnable_methods(args.methods)
     stem = f"scan_pairs_{args.split}" if args.protocol == "scan" else f"heldout_{args.protocol}_{args.split}"
-    runner = MethodRunner(methods, FpfhParameters.tuned(), threads=args.threads, model_dir=args.model_dir)
+    tuning = open3d_tuning_file(args.protocol, args.open3d_tuning)
+    runner = MethodRunner(methods, FpfhParameters.tuned(tuning), threads=args.threads, model_dir=args.model_dir)
     cache = ResultCache(args.out / f"{stem}_pairs.jsonl", fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
                         baseline_id=runner.parameters.fingerprint(), refinement_id=REFINEMENT_ID)
     sizes, overlaps = [], {}
@@ -178,6 +201,8 @@ def main(argv=None) -> int:
         "",
         f"Command: `{command_line()}`",
         f"Machine: {machine_info()}",
+        f"Open3D parameters (network units, object radius = 1; `{project_relative(tuning)}`, chosen by "
+        f"`tune_open3d.py` on validation pairs): {parameters_dict(runner.parameters)}",
         "",
         markdown_table(summary),
         "",
@@ -195,6 +220,8 @@ def main(argv=None) -> int:
     write_report(stem, markdown, {"command": command_line(), "machine": machine_info(), "split": args.split,
                                   "pairs": args.pairs, "seed": args.seed, "summary": summary,
                                   "success_by_overlap": by_overlap, "overlaps": overlaps,
+                                  "open3d_tuning": str(project_relative(tuning)),
+                                  "open3d_parameters": parameters_dict(runner.parameters),
                                   "per_pair_file": f"{stem}_pairs.jsonl.gz"}, args.out)
     cache.pack()
     print(markdown)

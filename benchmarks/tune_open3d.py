@@ -11,6 +11,13 @@ parameters as FPFH (same Open3D RANSAC / FGR, only the descriptors differ).
 
     python benchmarks/tune_open3d.py [--pairs 20]
     python benchmarks/tune_open3d.py --protocols resampled_partial --out benchmarks/results/modelnet10_resampled
+    python benchmarks/tune_open3d.py --protocols scan --pairs 40 --out benchmarks/results/open3d_tuning_scans
+
+``scan`` sweeps raw simulated range-scan pairs of v4's *validation* shapes
+(``scan_pairs.protocol_pairs("val", "scan", n)``: ``training.data.split_train_val_test``, never
+its test names), with smaller voxels added (raw views are denser than 1024-point shapes): the
+parameters for range scans, simulated and real (``scan_pairs.py`` and ``bunny.py`` read them
+through ``methods.SCAN_TUNING_FILE``).
 
 Writes benchmarks/results/open3d_tuning.md and .json (``chosen`` is read by methods.py).
 """
@@ -33,6 +40,8 @@ from methods import TUNING_FILE, FpfhParameters, MethodRunner  # noqa: E402
 from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS as SYNTHETIC_PROTOCOLS  # noqa: E402
 
 VOXELS = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2)
+SCAN_VOXELS = (0.02, 0.03, *VOXELS)  # raw views hold ~300-3000 points, up to 3x a shape's 1024
+SCAN_PROTOCOL = "scan"
 ICP_DISTANCES = (0.05, 0.1, 0.2, 0.3, 0.5)
 PROTOCOLS = PAPER_PROTOCOLS  # the default sweep
 
@@ -53,18 +62,29 @@ def choose(rows: dict[str, dict]) -> FpfhParameters:
     return FpfhParameters(voxel=best_voxel, icp_distance=best("icp_point_to_plane")["value"])
 
 
+def tuning_pairs(protocol: str, count: int) -> list:
+    """``count`` validation pairs of a protocol: raw simulated scans of v4's validation shapes for
+    ``"scan"``, else the shape protocol's pairs of the held-out training shapes."""
+    if protocol == SCAN_PROTOCOL:
+        from scan_pairs import protocol_pairs
+
+        return list(protocol_pairs("val", SCAN_PROTOCOL, count))
+    return validation_pairs(protocol, count)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=20, help="validation pairs per protocol")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=SYNTHETIC_PROTOCOLS,
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=(*SYNTHETIC_PROTOCOLS, SCAN_PROTOCOL),
                         help="validation protocols to tune on (default: the paper's)")
     parser.add_argument("--out", type=Path, default=TUNING_FILE.parent,
                         help="folder for open3d_tuning.{md,json}; the default one is what methods.py reads")
     args = parser.parse_args(argv)
 
-    pairs = [pair for protocol in args.protocols for pair in validation_pairs(protocol, args.pairs)]
+    pairs = [pair for protocol in args.protocols for pair in tuning_pairs(protocol, args.pairs)]
+    voxels = SCAN_VOXELS if SCAN_PROTOCOL in args.protocols else VOXELS
     rows: dict[str, dict] = {}
-    sweeps = [("fpfh", voxel, FpfhParameters(voxel=voxel), ("fpfh_ransac", "fpfh_fgr")) for voxel in VOXELS]
+    sweeps = [("fpfh", voxel, FpfhParameters(voxel=voxel), ("fpfh_ransac", "fpfh_fgr")) for voxel in voxels]
     sweeps += [("icp", distance, FpfhParameters(icp_distance=distance), ("icp_point_to_plane",))
                for distance in ICP_DISTANCES]
     for kind, value, parameters, methods in tqdm(sweeps, desc="settings", unit="setting"):
@@ -88,7 +108,9 @@ def main(argv=None) -> int:
         "# Open3D parameters for the baselines, chosen on validation pairs",
         "",
         f"Pairs: {args.pairs} per protocol ({', '.join(args.protocols)}) from the held-out training shapes "
-        "(never the ModelNet10 test split). Units: network units (object radius = 1).",
+        "(never the ModelNet10 test split"
+        + ("; scan pairs: v4's validation split of the dense shapes, never its test names" if SCAN_PROTOCOL in args.protocols else "")
+        + "). Units: network units (object radius = 1).",
         f"Command: `{command_line()}`. Machine: {machine_info()}.",
         "",
         f"**Chosen:** voxel v = {best_voxel} (normals 2v, FPFH 5v, RANSAC 1.5v, FGR 0.5v), "

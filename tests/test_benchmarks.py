@@ -274,6 +274,48 @@ def test_result_cache_reruns_learned_methods_of_another_model(tmp_path):
     assert common.ResultCache(path).records.keys() == {("p", 3, "fpfh_fgr")}
 
 
+def test_the_scan_benchmarks_use_their_own_recorded_sweep():
+    """Range-scan benchmarks give Open3D the parameters of the sweep on simulated scans of
+    validation shapes (scan_pairs.py for --protocol scan, bunny.py for its real pairs), the
+    choice its recorded rows make; the shape protocols keep the ModelNet sweep."""
+    import bunny
+    import scan_pairs
+    import tune_open3d
+
+    recorded = json.loads(methods.SCAN_TUNING_FILE.read_text())
+    assert recorded["protocols"] == ["scan"]
+    assert {row["value"] for row in recorded["rows"].values() if row["kind"] == "fpfh"} == set(tune_open3d.SCAN_VOXELS)
+    assert methods.FpfhParameters.tuned(methods.SCAN_TUNING_FILE) == tune_open3d.choose(recorded["rows"])
+    assert scan_pairs.open3d_tuning_file("scan") == methods.SCAN_TUNING_FILE
+    assert scan_pairs.open3d_tuning_file("partial") == methods.TUNING_FILE
+    assert scan_pairs.open3d_tuning_file("scan", Path("x.json")) == Path("x.json")
+    defaults = bunny.build_parser().parse_args([])
+    assert (defaults.open3d_tuning, defaults.real_open3d_tuning) == (methods.TUNING_FILE, methods.SCAN_TUNING_FILE)
+
+
+def test_result_cache_stamps_baselines_by_protocol(tmp_path):
+    """A mapping protocol -> fingerprint re-runs only the classical records of the part whose
+    parameters changed (bunny.py: its paper protocol and its real pairs are tuned apart)."""
+    path = tmp_path / "pairs.jsonl"
+    first = common.ResultCache(path, baseline_id={"a": "one", "b": "two"})
+    first.add([{**_record(2.0, 0.0, index=3), "protocol": part, "method": "fpfh_fgr"} for part in ("a", "b")])
+    assert first.records[("a", 3, "fpfh_fgr")]["baseline"] == "one"
+    assert first.records[("b", 3, "fpfh_fgr")]["baseline"] == "two"
+    changed = common.ResultCache(path, baseline_id={"a": "one", "b": "three"})
+    assert changed.stale == 1 and changed.has("a", 3, ["fpfh_fgr"]) and not changed.has("b", 3, ["fpfh_fgr"])
+
+
+def test_result_cache_reruns_descriptor_rows_of_other_open3d_parameters(tmp_path):
+    """The descriptor-only rows run Open3D's estimators with the baselines' parameters: they
+    re-run when either the model or those parameters change; the other learned rows do not."""
+    path = tmp_path / "pairs.jsonl"
+    first = common.ResultCache(path, model_id="m", baseline_id="one")
+    first.add([{**_record(1.0, 0.0, index=3), "method": method} for method in ("logdesc_fsr", "logdesc_desc_fgr")])
+    other_parameters = common.ResultCache(path, model_id="m", baseline_id="two")
+    assert other_parameters.stale == 1
+    assert other_parameters.has("p", 3, ["logdesc_fsr"]) and not other_parameters.has("p", 3, ["logdesc_desc_fgr"])
+
+
 def test_result_cache_reruns_baselines_of_other_parameters(tmp_path):
     """Classical records carry the Open3D parameters' fingerprint, learned ones do not."""
     path = tmp_path / "pairs.jsonl"
