@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
+from .pose.svd import solve_rigid_batch
 from .sampling import seeded_subset
 from .validation import as_points
 
@@ -405,24 +406,14 @@ def point_to_point_icp_batch(
         fitness = close.mean(axis=1)
         if iteration == iterations:
             break
-        weights = close.astype(np.float64)[:, None, :]  # (P, 1, N)
-        total = weights.sum(axis=2)  # (P, 1)
-        usable = total[:, 0] >= MIN_CORRESPONDENCES
+        usable = close.sum(axis=1) >= MIN_CORRESPONDENCES
         matched = target[np.minimum(index, len(target) - 1)].reshape(count, size, 3)
-        divisor = np.maximum(total, 1.0)
-        moved_centre = (weights @ moved)[:, 0] / divisor  # (P, 3)
-        matched_centre = (weights @ matched)[:, 0] / divisor
-        covariance = ((moved - moved_centre[:, None]) * weights.transpose(0, 2, 1)).transpose(0, 2, 1) @ (
-            matched - matched_centre[:, None]
-        )  # (P, 3, 3): sum of w (m - cm)(t - ct)^T
-        u, _, vt = np.linalg.svd(covariance)
-        v = vt.transpose(0, 2, 1)
-        reflection = np.linalg.det(v @ u.transpose(0, 2, 1)) < 0
-        v[reflection, :, 2] *= -1.0  # V diag(1, 1, -1): the nearest rotation, never a mirror
-        rotation = v @ u.transpose(0, 2, 1)
+        # One weighted Kabsch per usable pose (far points weigh 0): moved -> matched.
+        rotation, translation, _ = solve_rigid_batch(
+            moved[usable], matched[usable], close[usable].astype(np.float64), check_degenerate=False
+        )
         step = np.tile(np.eye(4), (count, 1, 1))
-        step[:, :3, :3] = rotation
-        step[:, :3, 3] = matched_centre - (rotation @ moved_centre[:, :, None])[:, :, 0]
-        step[~usable] = np.eye(4)
+        step[usable, :3, :3] = rotation
+        step[usable, :3, 3] = translation
         poses = step @ poses
     return poses, fitness

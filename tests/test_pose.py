@@ -121,6 +121,31 @@ def test_svd_never_returns_reflection():
     np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
 
 
+def test_batched_solver_is_each_problem_alone_and_its_degeneracy_test_optional():
+    """solve_rigid_batch: every problem of a batch solved as if alone (weights 0 drop a point),
+    a collinear problem flagged, and check_degenerate=False the same poses with no flag."""
+    from logdesc_rt.pose.svd import solve_rigid_batch
+
+    rng = np.random.default_rng(7)
+    source = rng.normal(size=(4, 50, 3))
+    source[3] = np.outer(np.linspace(-1, 1, 50), [1.0, 2.0, 3.0])  # on a line: degenerate
+    truths = [random_transform(seed) for seed in range(4)]
+    target = np.stack([points @ truth[:3, :3].T + truth[:3, 3] for points, truth in zip(source, truths)])
+    weights = (rng.random((4, 50)) > 0.3).astype(np.float64)
+    target[:, :5] += np.where(weights[:, :5, None] == 0, 10.0, 0.0)  # far, but weighing nothing
+    rotations, translations, degenerate = solve_rigid_batch(source, target, weights)
+    assert degenerate.tolist() == [False, False, False, True]
+    for problem in range(3):
+        assert np.allclose(rotations[problem], truths[problem][:3, :3], atol=1e-12)
+        assert np.allclose(translations[problem], truths[problem][:3, 3], atol=1e-12)
+        alone = solve_rigid_batch(source[problem:problem + 1], target[problem:problem + 1], weights[problem:problem + 1])
+        assert np.allclose(alone[0][0], rotations[problem], rtol=0, atol=1e-14)
+        assert np.allclose(alone[1][0], translations[problem], rtol=0, atol=1e-14)
+    unchecked = solve_rigid_batch(source, target, weights, check_degenerate=False)
+    assert np.array_equal(unchecked[0], rotations) and np.array_equal(unchecked[1], translations)
+    assert not unchecked[2].any()
+
+
 def test_svd_bad_input_raises_specific_errors():
     rng = np.random.default_rng(6)
     source = rng.normal(size=(10, 3))

@@ -63,7 +63,7 @@ def _power_of_two_scales(source: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def solve_rigid_batch(
-    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None, check_degenerate: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Solve B weighted rigid-alignment problems at once (no input validation).
 
@@ -75,12 +75,14 @@ def solve_rigid_batch(
         target: (B, K, 3) finite float64 target points y.
         weights: (B, K) finite, non-negative, each row with a positive sum; None for equal
             weights.
+        check_degenerate: False skips the degeneracy test (two more SVDs of the centred
+            points), for callers that take every step as it comes (an ICP screen).
 
     Returns:
         rotations (B, 3, 3), translations (B, 3), degenerate (B,) bool. A degenerate problem
         (corresponded points all coincide or lie on a line in either cloud, or a
         cross-covariance of rank < 2) has no unique rotation; its R and t are still finite
-        but meaningless.
+        but meaningless. All False when ``check_degenerate`` is False.
     """
     batch, count = source.shape[:2]
     scales = _power_of_two_scales(source, target)
@@ -93,11 +95,13 @@ def solve_rigid_batch(
         weights = weights / weights.max(axis=1, keepdims=True)
         weights = weights / weights.sum(axis=1, keepdims=True)
 
-    source_centroid = np.einsum("bk,bki->bi", weights, source)
-    target_centroid = np.einsum("bk,bki->bi", weights, target)
+    # Batched matrix products rather than einsum: the same sums; for the verification screen's
+    # few-hundred-point problems session 16 measured 12 ms a pair against einsum's 21.
+    source_centroid = (weights[:, None, :] @ source)[:, 0]
+    target_centroid = (weights[:, None, :] @ target)[:, 0]
     source_centred = source - source_centroid[:, None, :]
     target_centred = target - target_centroid[:, None, :]
-    cross_covariance = np.einsum("bk,bki,bkj->bij", weights, source_centred, target_centred)
+    cross_covariance = (source_centred * weights[:, :, None]).transpose(0, 2, 1) @ target_centred
     left, singular_values, right_transposed = np.linalg.svd(cross_covariance)
 
     # R = V diag(1, 1, d) U^T with d = det(V U^T) = +-1: the last axis is flipped when the
@@ -105,15 +109,15 @@ def solve_rigid_batch(
     reflection_sign = np.sign(np.linalg.det(left) * np.linalg.det(right_transposed))
     correction = np.ones((batch, 3))
     correction[:, 2] = reflection_sign
-    rotations = np.einsum("bji,bj,bkj->bik", right_transposed, correction, left)
-    translations = scales[:, None] * (
-        target_centroid - np.einsum("bij,bj->bi", rotations, source_centroid)
-    )
+    rotations = (right_transposed.transpose(0, 2, 1) * correction[:, None, :]) @ left.transpose(0, 2, 1)
+    translations = scales[:, None] * (target_centroid - (rotations @ source_centroid[:, :, None])[:, :, 0])
 
+    degenerate = np.zeros(batch, dtype=bool)
+    if not check_degenerate:
+        return rotations, translations, degenerate
     root_weights = np.sqrt(weights)[:, :, None]
     spread_source = np.linalg.svd(root_weights * source_centred, compute_uv=False)
     spread_target = np.linalg.svd(root_weights * target_centred, compute_uv=False)
-    degenerate = np.zeros(batch, dtype=bool)
     for spread in (spread_source, spread_target):
         degenerate |= spread[:, 0] <= COINCIDENT_RELATIVE_TOLERANCE
         degenerate |= spread[:, 1] <= COLLINEAR_RELATIVE_TOLERANCE * spread[:, 0]
