@@ -9,9 +9,10 @@ Two steps, both resumable:
 
     python benchmarks/calibrate_success.py collect [--count 120] [--threads 1] [--model-dir DIR --cache DIR]
         runs the network once per pair and caches the matches (runs/success_calibration/)
-    python benchmarks/calibrate_success.py fit [--cache DIR --report STEM] [--manifest MODEL_DIR]
+    python benchmarks/calibrate_success.py fit [--cache DIR --report STEM] [--manifest MODEL_DIR] [--folds 5]
         computes the verification features of every candidate pose, fits the logistic model
-        and the threshold, writes benchmarks/results/success_calibration.{md,json}; with
+        and the threshold, writes benchmarks/results/success_calibration.{md,json} with the
+        flag on the calibration pairs (in-sample) and held out by shape folds; with
         --manifest, also writes the calibration into that model's manifest ("runtime" ->
         "verification"), where the runtime reads it (a calibration belongs to one model)
 
@@ -186,6 +187,10 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--descriptor-consensus", nargs="*", default=None, choices=CANDIDATE_ESTIMATORS,
                          help="the estimators run on the descriptors' own mutual nearest neighbours (none: "
                               "give the flag alone; default: VerificationConfig's)")
+    fitting.add_argument("--folds", type=int, default=5,
+                         help="held-out estimate of the flag by shape folds (0 or 1: none)")
+    fitting.add_argument("--split", choices=SPLITS, default="v3",
+                         help="whose validation shapes the cache holds (as collected; for the folds)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
     for command in (collecting, fitting):
@@ -194,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
-        fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus)
+        fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus,
+            args.folds, args.split)
     return 0
 
 
@@ -346,7 +352,8 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
     lines = [
         "# Success-flag calibration (validation pairs only)",
         "",
-        "`python benchmarks/calibrate_success.py collect && python benchmarks/calibrate_success.py fit`",
+        f"Fitted by `{payload['command']}` on the matches `python benchmarks/calibrate_success.py collect` cached",
+        "(the same --cache, the model below; `--split` and the groups as given).",
         "",
         f"Model: {payload['model']['description']}. Pairs: the training run's held-out *validation* shapes",
         "(5 % of ModelNet10 train and of the ModelNet40 train subset; never ModelNet10's test split),",
@@ -377,22 +384,48 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         "| mode | group | pairs | right | claimed | precision | recall |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for mode, groups in payload["flag_on_calibration_pairs"].items():
+    lines += _flag_rows(payload["flag_on_calibration_pairs"])
+    if payload.get("flag_held_out"):
+        lines += [
+            "",
+            f"The flag held out ({payload['held_out_folds']}-fold by shape: each pair flagged by a calibration",
+            "fitted, weights and threshold, on the pairs of the other folds' shapes alone; an estimate",
+            "of what the flag does on shapes it was not fitted on):",
+            "",
+            "| mode | group | pairs | right | claimed | precision | recall |",
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+            *_flag_rows(payload["flag_held_out"]),
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _flag_rows(summary: dict) -> list[str]:
+    """Markdown rows of a :func:`flag_summary`."""
+    lines = []
+    for mode, groups in summary.items():
         for group, q in groups.items():
             precision = "-" if q["precision"] != q["precision"] else f"{q['precision']:.3f}"
             recall = "-" if q["recall"] != q["recall"] else f"{q['recall']:.3f}"
             lines.append(f"| {mode} | {group} | {q['pairs']} | {q['right']} | {q['claimed']} | {precision} | {recall} |")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def fit(
     groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None,
     candidates: tuple[str, ...] | None = None, descriptor_consensus: tuple[str, ...] | None = None,
+    folds: int = 0, split: str = "v3",
 ) -> None:
+    """Features of every cached hypothesis, the calibration, its report (and manifest).
+
+    ``folds`` > 1 adds a held-out estimate of the flag: the pairs' shapes are dealt into that
+    many folds, and each fold's pairs are flagged by a calibration fitted on the other folds
+    alone (``split``: the validation shapes the cache was collected from).
+    """
     import dataclasses
 
+    from common import command_line
+
     from logdesc_rt.config import VerificationConfig
-    from logdesc_rt.verification import logistic_confidence
 
     base = VerificationConfig() if candidates is None else VerificationConfig(candidates=tuple(candidates))
     if descriptor_consensus is not None:
@@ -413,6 +446,45 @@ def fit(
     print(f"features in {time.perf_counter() - started:.0f} s", flush=True)
 
     rows = [row for group in groups for key, pair in cached["rows"].items() if key.startswith(group + "/") for row in pair]
+    fitted = calibrate(rows, base)
+    outcomes = flag_outcomes(rows, fitted)
+    pairs_per_group: dict[str, int] = {}
+    for pair in outcomes:
+        pairs_per_group[pair.split("/")[0]] = pairs_per_group.get(pair.split("/")[0], 0) + 1
+    summary = flag_summary(outcomes, groups)
+    held_out = None
+    if folds > 1:
+        shapes = pair_shapes(sorted(outcomes), split)
+        held_out = flag_summary(cross_validated_outcomes(rows, base, shapes, folds), groups)
+    payload = {
+        "what": "success-flag calibration on validation pairs (benchmarks/calibrate_success.py)",
+        "command": command_line(),
+        "model": (json.loads((cache / MODEL_RECORD).read_text()) if (cache / MODEL_RECORD).exists()
+                  else {"id": None, "description": "not recorded (a cache collected before model.json)"}),
+        "groups": groups,
+        "features": list(FEATURES),
+        "verification_config": fitted.to_dict(),
+        "target_precision": TARGET_PRECISION,
+        "flag_on_calibration_pairs": summary,
+        "flag_held_out": held_out,
+        "held_out_folds": folds if held_out else None,
+    }
+    report.with_suffix(".json").write_text(json.dumps(payload, indent=1))
+    report.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
+    if manifest_dir is not None:
+        write_calibration(manifest_dir, fitted)
+    print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": fitted.success_threshold}, indent=1))
+    for label, table in (("in-sample", summary), ("held-out", held_out)):
+        for mode in ("refined", "unrefined") if table else ():
+            for group, quality in table[mode].items():
+                print(f"{label:9s} {mode:10s} {group:22s} " + " ".join(f"{k} {v:.3g}" for k, v in quality.items()))
+
+
+def calibrate(rows: list[dict], base):
+    """The logistic weights and the success threshold fitted on ``rows`` (hypotheses of
+    :func:`pair_hypotheses`): ``base`` (a VerificationConfig) with them filled in."""
+    import dataclasses
+
     features = np.array([row["features"] for row in rows])
     labels = np.array([row["verified_right"] for row in rows])
     # Each pair weighs one in total (pairs with many hypotheses do not dominate), and each group
@@ -426,50 +498,92 @@ def fit(
     weights = np.array([1.0 / per_pair[row["pair"]] / pairs_per_group[row["group"]] for row in rows])
     coefficients, bias = fit_logistic(features, labels, weights)
     fitted = dataclasses.replace(base, weights=tuple(coefficients.tolist()), bias=bias)
+    outcomes = flag_outcomes(rows, fitted)
+    pairs = sorted(outcomes)
+    confidence = np.array([outcomes[p]["confidence"] for p in pairs])
+    threshold = choose_threshold(confidence, np.array([outcomes[p]["refined_right"] for p in pairs]))
+    # Real scans: no wrong pose of an (unbenchmarked) real pair may be claimed.
+    real_wrong = [outcomes[p]["confidence"] for p in pairs if p.startswith("bunny") and not outcomes[p]["refined_right"]]
+    if real_wrong:
+        threshold = max(threshold, float(np.ceil((max(real_wrong) + 1e-4) * 1e4) / 1e4))
+    return dataclasses.replace(fitted, success_threshold=threshold)
 
-    # The flag on each pair's chosen hypothesis (highest confidence), as the runtime does it.
-    chosen = {}
+
+def flag_outcomes(rows: list[dict], fitted) -> dict[str, dict]:
+    """Per pair, what the runtime does with the calibration ``fitted``: its chosen hypothesis
+    (highest confidence), whether the flag claims it, refined and unrefined, and whether it is right."""
+    from logdesc_rt.verification import logistic_confidence
+
+    chosen: dict[str, tuple[float, dict]] = {}
     for row in rows:
         confidence = logistic_confidence(np.array(row["features"]), fitted)
         if row["pair"] not in chosen or confidence > chosen[row["pair"]][0]:
             chosen[row["pair"]] = (confidence, row)
-    pairs = sorted(chosen)
-    confidence = np.array([chosen[p][0] for p in pairs])
-    refined_right = np.array([chosen[p][1]["verified_right"] for p in pairs])
-    threshold = choose_threshold(confidence, refined_right)
-    # Real scans: no wrong pose of an (unbenchmarked) real pair may be claimed.
-    real_wrong = [c for c, p, r in zip(confidence, pairs, refined_right) if p.startswith("bunny") and not r]
-    if real_wrong:
-        threshold = max(threshold, float(np.ceil((max(real_wrong) + 1e-4) * 1e4) / 1e4))
-    fitted = dataclasses.replace(fitted, success_threshold=threshold)
-    claimed = confidence >= threshold
-    unrefined_claimed = claimed & np.array([chosen[p][1]["within_verified"] for p in pairs])
-    unrefined_right = np.array([chosen[p][1]["unrefined_right"] for p in pairs])
-    summary = {"refined": {}, "unrefined": {}}
+    outcomes = {}
+    for pair, (confidence, row) in chosen.items():
+        claimed = bool(confidence >= fitted.success_threshold)
+        outcomes[pair] = {
+            "confidence": float(confidence),
+            "refined_claimed": claimed,
+            "refined_right": bool(row["verified_right"]),
+            # register() without ICP claims only a pose within same_pose_deg of the verified one.
+            "unrefined_claimed": claimed and bool(row["within_verified"]),
+            "unrefined_right": bool(row["unrefined_right"]),
+        }
+    return outcomes
+
+
+def flag_summary(outcomes: dict[str, dict], groups: list[str]) -> dict[str, dict]:
+    """:func:`flag_quality` of ``outcomes`` per mode (refined / unrefined) and group ("all" first)."""
+    pairs = sorted(outcomes)
+    summary: dict[str, dict] = {"refined": {}, "unrefined": {}}
     for group in ["all", *groups]:
-        member = np.array([group == "all" or p.startswith(group + "/") for p in pairs])
-        if not member.any():
+        member = [p for p in pairs if group == "all" or p.startswith(group + "/")]
+        if not member:
             continue
-        summary["refined"][group] = flag_quality(claimed[member], refined_right[member])
-        summary["unrefined"][group] = flag_quality(unrefined_claimed[member], unrefined_right[member])
-    payload = {
-        "what": "success-flag calibration on validation pairs (benchmarks/calibrate_success.py)",
-        "model": (json.loads((cache / MODEL_RECORD).read_text()) if (cache / MODEL_RECORD).exists()
-                  else {"id": None, "description": "not recorded (a cache collected before model.json)"}),
-        "groups": groups,
-        "features": list(FEATURES),
-        "verification_config": fitted.to_dict(),
-        "target_precision": TARGET_PRECISION,
-        "flag_on_calibration_pairs": summary,
-    }
-    report.with_suffix(".json").write_text(json.dumps(payload, indent=1))
-    report.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
-    if manifest_dir is not None:
-        write_calibration(manifest_dir, fitted)
-    print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": threshold}, indent=1))
-    for mode in ("refined", "unrefined"):
-        for group, quality in summary[mode].items():
-            print(f"{mode:10s} {group:22s} " + " ".join(f"{k} {v:.3g}" for k, v in quality.items()))
+        for mode in summary:
+            claimed = np.array([outcomes[p][f"{mode}_claimed"] for p in member])
+            right = np.array([outcomes[p][f"{mode}_right"] for p in member])
+            summary[mode][group] = flag_quality(claimed, right)
+    return summary
+
+
+def pair_shapes(pairs: list[str], split: str) -> dict[str, str]:
+    """The shape each calibration pair (``"<group>/<index>"``) was cut from, as
+    :func:`synthetic_pairs` and :func:`bunny_pairs` choose it: the unit a held-out fold keeps
+    whole, so that no shape is both fitted and judged (the scan group reuses its shapes)."""
+    from training.data import load_dense_shapes, load_training_sources, split_train_val_test, split_training_shapes
+
+    sources = load_training_sources()
+    shapes = split_train_val_test(sources).shapes if split == "three-way" else split_training_shapes(sources)
+    dense_names = None
+    names = {}
+    for pair in pairs:
+        group, index = pair.split("/", 1)
+        if group in ("bunny_unbenchmarked", INIT_GROUP):
+            names[pair] = "bunny/" + index  # a real pair of two scans: its own unit
+        elif group == "val_scan":
+            if dense_names is None:
+                dense_names = load_dense_shapes().subset(shapes.val_names).names
+            names[pair] = dense_names[int(index) % len(dense_names)]
+        else:
+            names[pair] = shapes.val_ids[int(index)].split("/", 1)[1]
+    return names
+
+
+def cross_validated_outcomes(rows: list[dict], base, shapes: dict[str, str], folds: int) -> dict[str, dict]:
+    """:func:`flag_outcomes` of every pair under a calibration fitted without its shape: the
+    shapes are dealt into ``folds`` folds (seeded), each fold judged by a fit on the others."""
+    unique = sorted(set(shapes.values()))
+    order = np.random.default_rng([SEED, folds]).permutation(len(unique))
+    fold_of = {unique[i]: rank % folds for rank, i in enumerate(order)}
+    outcomes: dict[str, dict] = {}
+    for fold in range(folds):
+        training = [row for row in rows if fold_of[shapes[row["pair"]]] != fold]
+        judged = [row for row in rows if fold_of[shapes[row["pair"]]] == fold]
+        if judged:
+            outcomes.update(flag_outcomes(judged, calibrate(training, base)))
+    return outcomes
 
 
 def write_calibration(model_dir: Path, fitted) -> None:
