@@ -360,3 +360,30 @@ def test_real_shape_pairs(data_root):
         assert residuals.max() <= bound
         expected = {"partial": 768, "resampled": 512, "resampled_partial": 384}.get(protocol, 1024)
         assert sample["src_edges"].shape == (expected, 30, GeometryConfig().edge_channels)
+
+
+def test_scan_shapes_drawn_by_class_weight_deterministically():
+    """--scan-shape-weighting sqrt-class: a class of c shapes weighs sqrt(c) (its shapes
+    1/sqrt(c) each), the same key always draws the same shape, "uniform" keeps index % count,
+    and an unknown weighting is refused by name."""
+    from training.data import DenseShapes
+
+    names = [f"airplane_{i:04d}" for i in range(16)] + ["bench_0001", "bench_0002", "bench_0003", "bench_0004", "lamp_0001"]
+    dense = DenseShapes(np.zeros((len(names), 4, 3), np.float32), np.zeros((len(names), 4, 3), np.float32), names)
+    weights = dense.draw_weights("sqrt-class")
+    classes = np.array(dense.class_names)
+    # Class totals 4 : 2 : 1 (sqrt of 16, 4, 1).
+    assert np.allclose([weights[classes == c].sum() for c in ("airplane", "bench", "lamp")], np.array([4, 2, 1]) / 7)
+    assert np.allclose(dense.draw_weights("uniform"), 1 / len(names))
+    with pytest.raises(ValueError, match="weighting"):
+        dense.draw_weights("balanced")
+    shapes = np.zeros((3, 1024, 3), np.float32)
+    weighted = PairDataset(shapes, seed=4, dense=dense, scan_shape_weighting="sqrt-class", geometry_on_device=True)
+    uniform = PairDataset(shapes, seed=4, dense=dense, geometry_on_device=True)
+    keys = [(PairKey(epoch, index, "scan", 256), [4, epoch, index]) for epoch in range(300) for index in range(3)]
+    drawn = np.array([weighted.scan_shape(key, words) for key, words in keys])
+    assert np.array_equal(drawn, [weighted.scan_shape(key, words) for key, words in keys])
+    assert abs(np.mean(classes[drawn] == "airplane") - 4 / 7) < 0.06
+    assert [uniform.scan_shape(key, words) for key, words in keys[:5]] == [key.index % len(names) for key, _ in keys[:5]]
+    with pytest.raises(ValueError, match="weighting"):
+        PairDataset(shapes, dense=dense, scan_shape_weighting="balanced")

@@ -73,6 +73,7 @@ __all__ = [
     "TrainingShapes",
     "fixed_pair_batches",
     "load_dense_shapes",
+    "SCAN_SHAPE_WEIGHTINGS",
     "load_modelnet",
     "load_training_sources",
     "make_pair",
@@ -310,6 +311,34 @@ class DenseShapes:
         keep = [index for index, name in enumerate(self.names) if name in names]
         return DenseShapes(self.points[keep], self.normals[keep], [self.names[index] for index in keep])
 
+    @property
+    def class_names(self) -> list[str]:
+        """(S,) each shape's class: its id without the number (``"airplane_0001"`` -> ``"airplane"``)."""
+        return [name.rsplit("_", 1)[0] for name in self.names]
+
+    def draw_weights(self, weighting: str) -> np.ndarray:
+        """(S,) probabilities of drawing each shape for a scan pair, summing to 1.
+
+        ``"uniform"``: every shape alike, so a class counts as often as it has shapes (the
+        ModelNet40 subset is 61 % airplanes). ``"sqrt-class"``: each shape 1 / sqrt(its class's
+        count), so a class of c shapes weighs sqrt(c): airplanes fall to about a quarter and the
+        classes of a few shapes each rise, without any one shape repeated as often as uniform
+        classes would repeat it.
+        """
+        if weighting not in SCAN_SHAPE_WEIGHTINGS:
+            raise ValueError(f"scan shape weighting {weighting!r}: expected one of {SCAN_SHAPE_WEIGHTINGS}")
+        classes = self.class_names
+        if weighting == "uniform":
+            weights = np.ones(len(classes))
+        else:
+            counts = {name: classes.count(name) for name in set(classes)}
+            weights = np.array([1.0 / np.sqrt(counts[name]) for name in classes])
+        return weights / weights.sum()
+
+
+SCAN_SHAPE_WEIGHTINGS = ("uniform", "sqrt-class")
+SHAPE_DRAW_STREAM = 17  # the last word of the generator that draws a weighted scan pair's shape
+
 
 def load_dense_shapes(data_root=DEFAULT_DATA_ROOT) -> DenseShapes:
     """Read ``modelnet40_subset_10k/train.h5`` (../shared/data/README.md, "Dense shapes")."""
@@ -483,7 +512,10 @@ class PairDataset(_TorchDataset):
         geometry_on_device: bool = False,
         any_relative_rotation: bool = False,
         dense: DenseShapes | None = None,
+        scan_shape_weighting: str = "uniform",
     ) -> None:
+        if scan_shape_weighting not in SCAN_SHAPE_WEIGHTINGS:
+            raise ValueError(f"scan shape weighting {scan_shape_weighting!r}: expected one of {SCAN_SHAPE_WEIGHTINGS}")
         shapes = np.asarray(shapes, dtype=np.float32)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < SOURCE_POINTS:
             raise ValueError(f"shapes must be (S, P >= {SOURCE_POINTS}, 3), got {shapes.shape}")
@@ -497,8 +529,14 @@ class PairDataset(_TorchDataset):
         # True: samples carry points only; training computes the geometry for the whole batch
         # on its device (training/geometry_torch.py), where workers could not keep a GPU fed.
         self.geometry_on_device = bool(geometry_on_device)
-        # Simulated scans ("scan" keys) are cut from these; key.index is taken modulo their count.
+        # Simulated scans ("scan" keys) are cut from these: shape key.index modulo their count
+        # ("uniform"), or drawn with DenseShapes.draw_weights (``scan_shape_weighting``).
         self.dense = dense
+        self.scan_shape_weighting = scan_shape_weighting
+        self._scan_shape_cumulative = (
+            None if dense is None or scan_shape_weighting == "uniform"
+            else np.cumsum(dense.draw_weights(scan_shape_weighting))
+        )
 
     def __len__(self) -> int:
         return len(self.shapes)
@@ -518,14 +556,24 @@ class PairDataset(_TorchDataset):
             any_relative_rotation=self.any_relative_rotation,
         )
 
+    def scan_shape(self, key: PairKey, words: list[int]) -> int:
+        """The dense shape of a scan pair: ``key.index % len(dense)`` ("uniform"), else drawn
+        by the weighting from ``default_rng(words + [SHAPE_DRAW_STREAM])`` (the same key, the
+        same shape)."""
+        if self._scan_shape_cumulative is None:
+            return int(key.index) % len(self.dense.points)
+        draw = np.random.default_rng(words + [SHAPE_DRAW_STREAM]).random()
+        return int(min(np.searchsorted(self._scan_shape_cumulative, draw, side="right"), len(self.dense.points) - 1))
+
     def _scan_pair(self, key: PairKey, words: list[int]) -> Pair:
-        """Two simulated scans of dense shape ``key.index % len(dense)``, exactly
+        """Two simulated scans of dense shape :meth:`scan_shape`, exactly
         ``key.points_per_cloud`` points each (the next shape if one is too sparse)."""
         if self.dense is None:
             raise ValueError(f"{self.name}: a {SCAN_PROTOCOL!r} pair needs the dense shapes (dense=...)")
         last_error: Exception | None = None
+        first = self.scan_shape(key, words)
         for offset in range(4):
-            index = (int(key.index) + offset) % len(self.dense.points)
+            index = (first + offset) % len(self.dense.points)
             try:
                 return make_scan_pair(
                     self.dense.points[index],

@@ -63,6 +63,7 @@ from training.data import (
     DEFAULT_VAL_FRACTION,
     PROTOCOLS,
     SCAN_PROTOCOL,
+    SCAN_SHAPE_WEIGHTINGS,
     SOURCE_POINTS,
     PairDataset,
     ProtocolSchedule,
@@ -176,6 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="source points per pair (1024 = paper; partial keeps 75%%)")
     data.add_argument("--scan-points-per-cloud", type=int, default=None,
                       help="points per cloud of 'scan' pairs (default --points-per-cloud)")
+    data.add_argument("--scan-shape-weighting", default="uniform", choices=SCAN_SHAPE_WEIGHTINGS,
+                      help="how training scan pairs draw their dense shape: uniform (the ModelNet40 subset's own "
+                           "mix, 61 %% airplanes) or sqrt-class (a class of c shapes weighs sqrt(c)); "
+                           "validation pairs stay uniform")
     data.add_argument("--split", default="v3", choices=SPLITS,
                       help="v3: 5 %% of each source held out for validation (seed --seed); three-way (v4): v3's "
                            "validation shapes become the test shapes, never read here, and validation is a fresh "
@@ -627,6 +632,8 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
         name: PairDataset(
             split, args.seed, geometry_config=geometry, name=name, any_orientation=args.any_orientation,
             geometry_on_device=bool(args.geometry_on_device), dense=dense[name],
+            # getattr: a hand-built Namespace (tests) may predate the flag.
+            scan_shape_weighting=getattr(args, "scan_shape_weighting", "uniform") if name == "train" else "uniform",
         )
         for name, split in (("train", shapes.train), ("val", shapes.val))
     }
