@@ -12,7 +12,8 @@ with ``T_scan`` from ``bun.conf`` (without ``M``, the identity would be right fo
 
 Methods, in the same run on the same clouds (``benchmarks/methods.py``): ``register()`` as a
 user calls it (estimator "auto", verified), without and with point-to-plane ICP; Open3D FPFH +
-RANSAC, without and with ICP (its tuned parameters, ``benchmarks/results/open3d_tuning.json``).
+RANSAC, without and with ICP (its parameters tuned on simulated range scans of validation shapes,
+``methods.SCAN_TUNING_FILE``: the targets are real scans).
 Success: rotation error < 5 deg and translation error < 5 % of the mesh's radius (5.8 mm), the
 project's criterion; the translation error is measured where the object lands (the model's centre
 moved by the estimate against by the truth). Times are wall time per scan on this machine.
@@ -41,9 +42,17 @@ from common import (  # noqa: E402
     command_line,
     machine_info,
     model_description,
+    project_relative,
     write_report,
 )
-from methods import MethodRunner, open3d_available, runnable_methods  # noqa: E402
+from methods import (  # noqa: E402
+    SCAN_TUNING_FILE,
+    FpfhParameters,
+    MethodRunner,
+    open3d_available,
+    parameters_dict,
+    runnable_methods,
+)
 
 from logdesc_rt.io import DEFAULT_SURFACE_SAMPLES, read_mesh, read_point_cloud, read_stanford_conf  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
@@ -73,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     radius = float(np.linalg.norm(source - source.mean(axis=0), axis=1).max())
     poses = read_stanford_conf(folder / "data" / "bun.conf")
     methods = runnable_methods(LEARNED + CLASSICAL)
-    runner = MethodRunner(methods, threads=args.threads, model_dir=args.model_dir)
+    runner = MethodRunner(methods, FpfhParameters.tuned(SCAN_TUNING_FILE), threads=args.threads,
+                          model_dir=args.model_dir)
 
     rows = []
     for index, (scan_name, scan_pose) in enumerate(poses.items()):
@@ -126,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{SUCCESS_TRANSLATION_FRACTION:.0%} of the mesh's radius ({1e3 * SUCCESS_TRANSLATION_FRACTION * radius:.1f} mm).",
         "",
         f"Model: {model_description(args.model_dir)}",
+        "",
+        f"Open3D parameters (network units, object radius = 1; `{project_relative(SCAN_TUNING_FILE)}`, chosen by "
+        f"`tune_open3d.py` on simulated scans of validation shapes): {parameters_dict(runner.parameters)}",
         "",
         "| method | success | median L_R (deg) | median s / scan | flagged success | right when flagged |",
         "| --- | ---: | ---: | ---: | ---: | ---: |",
