@@ -584,3 +584,40 @@ def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(r
         demo_pair.source, demo_pair.target, refine=None
     )
     assert np.array_equal(own.transformation, own.verification.best.transformation)
+
+
+def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeypatch):
+    """calibrate_success.cross_validated_outcomes: every pair is flagged once, by a calibration
+    fitted without any pair of its shape (the scan group reuses shapes across pairs)."""
+    from logdesc_rt.config import VerificationConfig
+
+    calibrate_success = _calibrate_success()
+    rng = np.random.default_rng(0)
+    shapes, rows = {}, []
+    for index in range(40):
+        pair = f"val_scan/{index:04d}"
+        shapes[pair] = f"shape_{index % 9}"  # several pairs per shape
+        for _ in range(3):
+            right = bool(rng.random() < 0.6)
+            features = rng.normal(size=len(calibrate_success.FEATURES)) + (1.5 if right else 0.0)
+            rows.append({"pair": pair, "group": "val_scan", "features": features.tolist(), "verified_right": right,
+                         "unrefined_right": right, "within_verified": True})
+    fitted_on: list[set[str]] = []
+    real_calibrate = calibrate_success.calibrate
+
+    def recording_calibrate(training_rows, base):
+        fitted_on.append({row["pair"] for row in training_rows})
+        return real_calibrate(training_rows, base)
+
+    monkeypatch.setattr(calibrate_success, "calibrate", recording_calibrate)
+    outcomes = calibrate_success.cross_validated_outcomes(rows, VerificationConfig(), shapes, folds=4)
+    assert sorted(outcomes) == sorted(shapes) and len(fitted_on) == 4
+    judged_by = {}
+    for pairs in fitted_on:
+        held_out_shapes = set(shapes.values()) - {shapes[p] for p in pairs}
+        assert held_out_shapes  # each fit leaves some shapes out ...
+        for pair in shapes:
+            if shapes[pair] in held_out_shapes:
+                judged_by.setdefault(pair, 0)
+                judged_by[pair] += 1
+    assert all(count == 1 for count in judged_by.values()) and len(judged_by) == len(shapes)  # ... each exactly once
