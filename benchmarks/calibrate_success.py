@@ -133,8 +133,11 @@ def collect(
     record_path = cache / MODEL_RECORD
     if record_path.exists() and json.loads(record_path.read_text())["id"] != record["id"]:
         raise SystemExit(f"{cache} holds another model's matches ({record_path}); use another --cache")
+    if record_path.exists() and json.loads(record_path.read_text()).get("split", split) != split:
+        raise SystemExit(f"{cache} holds pairs of the {json.loads(record_path.read_text())['split']!r} split; "
+                         "use another --cache")
     cache.mkdir(parents=True, exist_ok=True)
-    record_path.write_text(json.dumps(record, indent=1) + "\n")
+    record_path.write_text(json.dumps({**record, "split": split}, indent=1) + "\n")
     for group in groups:
         (cache / group).mkdir(parents=True, exist_ok=True)
         pairs = bunny_pairs() if group == "bunny_unbenchmarked" else synthetic_pairs(group, count, split)
@@ -190,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--folds", type=int, default=5,
                          help="held-out estimate of the flag by shape folds (0 or 1: none)")
     fitting.add_argument("--split", choices=SPLITS, default="v3",
-                         help="whose validation shapes the cache holds (as collected; for the folds)")
+                         help="whose validation shapes the cache holds, for the folds (a cache collected since "
+                              "session 20 records its own, which wins)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
     for command in (collecting, fitting):
@@ -419,7 +423,8 @@ def fit(
 
     ``folds`` > 1 adds a held-out estimate of the flag: the pairs' shapes are dealt into that
     many folds, and each fold's pairs are flagged by a calibration fitted on the other folds
-    alone (``split``: the validation shapes the cache was collected from).
+    alone (``split``: the validation shapes the cache was collected from, where its model
+    record does not say).
     """
     import dataclasses
 
@@ -454,7 +459,9 @@ def fit(
     summary = flag_summary(outcomes, groups)
     held_out = None
     if folds > 1:
-        shapes = pair_shapes(sorted(outcomes), split)
+        # The split the pairs were collected from (recorded since session 20), else the caller's.
+        recorded = json.loads((cache / MODEL_RECORD).read_text()) if (cache / MODEL_RECORD).exists() else {}
+        shapes = pair_shapes(sorted(outcomes), recorded.get("split", split))
         held_out = flag_summary(cross_validated_outcomes(rows, base, shapes, folds), groups)
     payload = {
         "what": "success-flag calibration on validation pairs (benchmarks/calibrate_success.py)",
