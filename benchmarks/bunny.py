@@ -630,7 +630,7 @@ def main(argv=None) -> int:
                           model_dir=args.model_dir)
     runners = {
         PAPER_PROTOCOL: runner,
-        REAL_PAIRS: MethodRunner(methods, FpfhParameters.tuned(args.real_open3d_tuning), registrar=runner.registrar),
+        REAL_PAIRS: runner.with_parameters(FpfhParameters.tuned(args.real_open3d_tuning)),
     }
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
                         baseline_id={part: part_runner.parameters.fingerprint() for part, part_runner in runners.items()},

@@ -321,6 +321,11 @@ class MethodRunner:
             results["icp_point_to_plane"] = self._icp(source, target, normalization.scale)
         return {name: results[name] for name in self.methods}
 
+    def with_parameters(self, parameters: FpfhParameters) -> MethodRunner:
+        """A runner of the same methods with other Open3D parameters, sharing this one's network
+        (a benchmark whose parts are of different kinds: ModelNet pairs and range scans)."""
+        return MethodRunner(self.methods, parameters, registrar=self.registrar)
+
     def _subset(self, methods: tuple[str, ...]) -> MethodRunner:
         """A runner of some of this one's methods, sharing its network and parameters."""
         unknown = set(methods) - set(self.methods)

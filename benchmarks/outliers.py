@@ -121,7 +121,7 @@ def main(argv=None) -> int:
                                 model_dir=args.model_dir)
     runners = {
         modelnet_set: shape_runner,
-        bunny_set: MethodRunner(methods, FpfhParameters.tuned(SCAN_TUNING_FILE), registrar=shape_runner.registrar),
+        bunny_set: shape_runner.with_parameters(FpfhParameters.tuned(SCAN_TUNING_FILE)),
     }
     summary: dict[str, dict[str, dict[str, float]]] = {}
     for set_name, pairs in sets.items():

@@ -37,11 +37,11 @@ from tqdm import tqdm  # noqa: E402
 from common import command_line, machine_info, pair_record, summarize, validation_pairs, write_report  # noqa: E402
 from methods import TUNING_FILE, FpfhParameters, MethodRunner  # noqa: E402
 
+from logdesc_rt.scan_simulation import SCAN_PROTOCOL  # noqa: E402
 from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS as SYNTHETIC_PROTOCOLS  # noqa: E402
 
 VOXELS = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2)
 SCAN_VOXELS = (0.02, 0.03, *VOXELS)  # raw views hold ~300-3000 points, up to 3x a shape's 1024
-SCAN_PROTOCOL = "scan"
 ICP_DISTANCES = (0.05, 0.1, 0.2, 0.3, 0.5)
 PROTOCOLS = PAPER_PROTOCOLS  # the default sweep
 

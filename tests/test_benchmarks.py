@@ -464,3 +464,12 @@ def test_descriptor_only_matches_are_mutual_nearest_neighbours():
         if i > 1:
             assert j == order[i]
     assert np.all((matches.confidence > 0.99) & (matches.confidence <= 1.0))
+
+
+def test_a_runner_with_other_parameters_shares_the_network():
+    """with_parameters: the same methods, the other Open3D parameters, one network loaded once."""
+    runner = methods.MethodRunner(("logdesc_fsr", "fpfh_ransac"))
+    scans = methods.FpfhParameters(voxel=0.03)
+    other = runner.with_parameters(scans)
+    assert other.methods == runner.methods and other.parameters == scans != runner.parameters
+    assert other.registrar is runner.registrar
