@@ -190,6 +190,10 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--descriptor-consensus", nargs="*", default=None, choices=CANDIDATE_ESTIMATORS,
                          help="the estimators run on the descriptors' own mutual nearest neighbours (none: "
                               "give the flag alone; default: VerificationConfig's)")
+    fitting.add_argument("--refit-plane-steps", type=int, default=None,
+                         help="point-to-plane steps of the pose returned without ICP (default: VerificationConfig's)")
+    fitting.add_argument("--refit-point-weight", type=float, default=None,
+                         help="their point-to-point term's weight (default: VerificationConfig's)")
     fitting.add_argument("--folds", type=int, default=5,
                          help="held-out estimate of the flag by shape folds (0 or 1: none)")
     fitting.add_argument("--split", choices=SPLITS, default="v3",
@@ -203,8 +207,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
+        refit = {name: value for name, value in (("refit_plane_steps", args.refit_plane_steps),
+                                                 ("refit_point_weight", args.refit_point_weight)) if value is not None}
         fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus,
-            args.folds, args.split)
+            args.folds, args.split, refit)
     return 0
 
 
@@ -288,7 +294,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     for hypothesis in verified.hypotheses:
         # What register() returns without ICP were this hypothesis chosen.
         unrefined = coarse_pose(
-            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config.refit_spacings
+            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
         )
         rows.append({
             "pair": f"{INIT_GROUP if with_init else path.parent.name}/{path.stem}",
@@ -417,14 +423,15 @@ def _flag_rows(summary: dict) -> list[str]:
 def fit(
     groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None,
     candidates: tuple[str, ...] | None = None, descriptor_consensus: tuple[str, ...] | None = None,
-    folds: int = 0, split: str = "v3",
+    folds: int = 0, split: str = "v3", refit: dict | None = None,
 ) -> None:
     """Features of every cached hypothesis, the calibration, its report (and manifest).
 
     ``folds`` > 1 adds a held-out estimate of the flag: the pairs' shapes are dealt into that
     many folds, and each fold's pairs are flagged by a calibration fitted on the other folds
     alone (``split``: the validation shapes the cache was collected from, where its model
-    record does not say).
+    record does not say). ``refit``: VerificationConfig settings of the pose returned without
+    ICP (``refit_plane_steps``, ``refit_point_weight``) over its defaults.
     """
     import dataclasses
 
@@ -435,6 +442,7 @@ def fit(
     base = VerificationConfig() if candidates is None else VerificationConfig(candidates=tuple(candidates))
     if descriptor_consensus is not None:
         base = dataclasses.replace(base, descriptor_consensus=tuple(descriptor_consensus))
+    base = dataclasses.replace(base, **(refit or {}))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
     if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
@@ -609,6 +617,8 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "second_consensus": list(fitted.second_consensus),
         "descriptor_consensus": list(fitted.descriptor_consensus),
         "refit_spacings": fitted.refit_spacings,
+        "refit_plane_steps": fitted.refit_plane_steps,
+        "refit_point_weight": fitted.refit_point_weight,
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

@@ -16,6 +16,7 @@ Writes ``benchmarks/results/coarse_refit/coarse_refit_study.{md,json}``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -56,7 +57,8 @@ def study_pair(registrar: Registrar, pair, spacings: list[float]) -> dict:
     returned = {
         str(spacing): is_right(coarse_pose(
             chosen, matched.source_points[correspondences[:, 0]], matched.target_points[correspondences[:, 1]],
-            matched.matches.confidence, matched.target_points[matched.target_index], spacing,
+            matched.matches.confidence, matched.target_points[matched.target_index],
+            dataclasses.replace(registrar.config.verification, refit_spacings=spacing),
         ), pair)
         for spacing in spacings
     }

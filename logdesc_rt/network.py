@@ -127,7 +127,8 @@ class ModelManifest:
         One stored without the second look's settings (before session 16) was fitted without
         it, and runs without it: its ``margin`` feature never met a turn-over as a rival. One
         stored without ``descriptor_consensus`` runs without the descriptors' candidates, and
-        one without ``refit_spacings`` returns the estimator's own pose without ICP."""
+        one without ``refit_spacings`` returns the estimator's own pose without ICP, and one
+        without ``refit_plane_steps`` returns the re-fit without its point-to-plane steps."""
         runtime = dict(self.runtime)
         verification = runtime.get("verification")
         if isinstance(verification, dict):
@@ -140,10 +141,13 @@ class ModelManifest:
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
-LEGACY_VERIFICATION_OFF = {"turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0}
+LEGACY_VERIFICATION_OFF = {
+    "turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0,
+    "refit_plane_steps": 0,
+}
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
 filled in alone; the second look before session 16, the descriptors' candidates before 17,
-the re-fitted pose without ICP before 18)."""
+the re-fitted pose without ICP before 18, its point-to-plane steps before 21)."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:

@@ -6,7 +6,7 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
     back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
     each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
-    re-fitted, :func:`coarse_pose`) -> optional ICP -> fitness / inlier RMSE on the full
+    re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP -> fitness / inlier RMSE on the full
     clouds -> the success flag.
 """
 
@@ -17,19 +17,20 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .config import RuntimeConfig
+from .config import RuntimeConfig, VerificationConfig
 from .normalization import PairNormalization
 from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
 from .pose.candidates import unexplained_candidate_poses
 from .pose.svd import refine_on_inliers, solve_rigid_batch, to_homogeneous, transformation_inliers
-from .refinement import refine_pose
+from .refinement import estimate_normals, plane_fit_step, refine_pose
 from .results import RegistrationResult
 from .threads import one_thread_per_caller
 from .timing import timed
 from .verification import UNEXPLAINED_PREFIX, Hypothesis, PoseVerifier, VerificationResult
 
 COARSE_REFIT_ROUNDS = 10  # MSAC re-solves of coarse_pose's fit (the inliers settle in a few)
+MIN_PLANE_FIT_MATCHES = 6  # fewer inlier matches: coarse_pose keeps the SVD fit (a 6-dof step)
 
 
 def register_matched(
@@ -97,7 +98,7 @@ def register_matched(
         source_matched, target_matched = pair.source_points[correspondences[:, 0]], pair.target_points[correspondences[:, 1]]
         pose = coarse_pose(
             chosen, source_matched, target_matched, pair.matches.confidence,
-            pair.target_points[pair.target_index], config.verification.refit_spacings,
+            pair.target_points[pair.target_index], config.verification,
         )
     else:
         chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
@@ -141,33 +142,43 @@ def coarse_pose(
     target_matched: np.ndarray,
     confidences: np.ndarray,
     target_working: np.ndarray,
-    refit_spacings: float,
+    verification: VerificationConfig,
 ) -> np.ndarray:
     """The pose ``register()`` returns without ICP for a verified hypothesis, user frame.
 
     The confidence-weighted least-squares pose of the learned matches that the hypothesis'
-    verified pose explains within ``refit_spacings`` target spacings, iterated MSAC-style
-    (:func:`~logdesc_rt.pose.svd.refine_on_inliers`). It is a pose from matches, like the
-    estimators': verification's short ICP only chose which matches are inliers. On 450
+    verified pose explains within ``verification.refit_spacings`` target spacings, iterated
+    MSAC-style (:func:`~logdesc_rt.pose.svd.refine_on_inliers`). It is a pose from matches,
+    like the estimators': verification's short ICP only chose which matches are inliers. On 450
     validation pairs it is right more often than the estimator's own pose (354 against 338;
     ``benchmarks/results/coarse_refit``), most on sparse pairs of separate samples.
 
+    Then ``verification.refit_plane_steps`` Gauss-Newton steps of the same matches' point-to-
+    plane fit (target normals from a PCA of the working subset; a point-to-point term of
+    weight ``refit_point_weight``). Two scans sample a surface independently, so a learned
+    match pairs a point with a neighbour of its twin: the error along the surface is sampling,
+    the error across it is the pose's. The matches stay the learned ones (no nearest-neighbour
+    search, unlike ICP): the pose is still one the network's matches give.
+
     Args:
         hypothesis: the chosen hypothesis (its estimator's and its verified pose).
-        source_matched, target_matched: (K, 3) float64 matched points, user frame.
+        source_matched, target_matched: (K, 3) float64 matched points, user frame; the
+            target's are points of ``target_working``.
         confidences: (K,) float64 their match probabilities.
         target_working: (Mt, 3) the target's working subset, where the matches live: its
             median nearest-neighbour distance is the spacing.
-        refit_spacings: the inlier distance in those spacings; 0: no refit.
+        verification: ``refit_spacings`` (the inlier distance in those spacings; 0: no
+            refit), ``refit_plane_steps`` and ``refit_point_weight``.
 
     Returns:
         (4, 4) float64 pose; the estimator's own (``hypothesis.transformation``) when there is
         no refit, or fewer than 3 weighted inliers, or a degenerate inlier set.
     """
-    if refit_spacings <= 0.0 or len(target_working) < 2:
+    if verification.refit_spacings <= 0.0 or len(target_working) < 2:
         return hypothesis.transformation
-    distances, _ = KDTree(target_working).query(target_working, k=2)
-    threshold = refit_spacings * float(np.median(distances[:, 1]))
+    tree = KDTree(target_working)
+    distances, _ = tree.query(target_working, k=2)
+    threshold = verification.refit_spacings * float(np.median(distances[:, 1]))
     inliers = transformation_inliers(hypothesis.verified_transformation, source_matched, target_matched, threshold**2)
     inliers &= confidences > 0
     if np.count_nonzero(inliers) < 3:
@@ -178,7 +189,19 @@ def coarse_pose(
     if degenerate[0]:
         return hypothesis.transformation
     fitted = to_homogeneous(rotations[0], translations[0])
-    return refine_on_inliers(fitted, source_matched, target_matched, confidences, threshold, COARSE_REFIT_ROUNDS)
+    fitted = refine_on_inliers(fitted, source_matched, target_matched, confidences, threshold, COARSE_REFIT_ROUNDS)
+    if verification.refit_plane_steps == 0 or np.count_nonzero(inliers) < MIN_PLANE_FIT_MATCHES:
+        return fitted
+    source, target, weights = source_matched[inliers], target_matched[inliers], confidences[inliers]
+    _, working_index = tree.query(target, k=1)  # the matched target points are working points
+    normals = estimate_normals(target_working, tree=tree, index=working_index.astype(np.int64))
+    for _ in range(verification.refit_plane_steps):
+        moved = source @ fitted[:3, :3].T + fitted[:3, 3]
+        step = plane_fit_step(moved, target, normals, weights, verification.refit_point_weight)
+        if not np.all(np.isfinite(step)):
+            break
+        fitted = step @ fitted
+    return fitted
 
 
 def verify_candidates(

@@ -88,7 +88,8 @@ class IcpResult:
 
 
 def estimate_normals(
-    points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None
+    points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
+    index: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N, 3) unit normals: the least-variance axis of each point's ``neighbours`` nearest.
 
@@ -97,12 +98,15 @@ def estimate_normals(
             from the origin (covariances are taken about each neighbourhood's mean anyway).
         neighbours: k, the point itself included (capped at N).
         tree: a k-d tree of ``points`` the caller already has (built here otherwise).
+        index: (K,) int, the points whose normals are wanted (each computed as it would be
+            among all); None: all of them.
 
     Returns:
-        (N, 3) float64 unit vectors; their sign is arbitrary (point-to-plane does not care).
+        (N, 3) (or (K, 3)) float64 unit vectors; their sign is arbitrary (point-to-plane does
+        not care).
     """
     tree = KDTree(points) if tree is None else tree
-    return _TargetNormals(points, tree, neighbours).at(np.arange(len(points)))
+    return _TargetNormals(points, tree, neighbours).at(np.arange(len(points)) if index is None else np.asarray(index))
 
 
 def refine_pose(source, target, initial: np.ndarray, max_distance: float, config) -> IcpResult:
@@ -304,7 +308,7 @@ def _icp_stage(
         if normals is None:
             step = rigid_transform_svd(moved[close], target[index[close]])
         else:
-            step = _point_to_plane_step(moved[close], target[index[close]], normals.at(index[close]))
+            step = plane_fit_step(moved[close], target[index[close]], normals.at(index[close]))
         pose = step @ pose
         if _step_size(step, max_distance) < tolerance:
             return pose, iteration, "converged"
@@ -353,20 +357,43 @@ def _relative(pose: np.ndarray, earlier: np.ndarray) -> np.ndarray:
     return relative
 
 
-def _point_to_plane_step(source: np.ndarray, target: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def plane_fit_step(
+    source: np.ndarray,
+    target: np.ndarray,
+    normals: np.ndarray,
+    weights: np.ndarray | None = None,
+    point_weight: float = 0.0,
+) -> np.ndarray:
     """One linearised point-to-plane update, (4, 4), for (K, 3) pairs and target normals.
 
-    Minimises sum_k ((R (p_k - c) + c + t - q_k) . n_k)^2 with R = I + [w]x about c, the
-    centroid of the p_k: the small-angle approximation is then accurate wherever the clouds
-    sit, since |p_k - c| is the size of the overlap, not the distance to the origin.
+    Minimises sum_k w_k [((R (p_k - c) + c + t - q_k) . n_k)^2 + point_weight |R (p_k - c) + c
+    + t - q_k|^2] with R = I + [w]x about c, the centroid of the p_k: the small-angle
+    approximation is then accurate wherever the clouds sit, since |p_k - c| is the size of the
+    overlap, not the distance to the origin. ICP uses the plain form (equal weights, no point
+    term); :func:`~logdesc_rt.pose_selection.coarse_pose` the weighted one on learned matches,
+    where the point term keeps the sliding directions of a flat patch determined. A point term
+    is the plane term with the three axes as normals, so both share one Jacobian form.
+
+    Args:
+        source, target: (K, 3) float64 paired points, the same unit.
+        normals: (K, 3) unit target normals (sign free).
+        weights: (K,) non-negative pair weights, or None for equal weights.
+        point_weight: lambda >= 0, the point-to-point term's weight relative to the plane's.
     """
     pivot = source.mean(axis=0)
     arm = source - pivot
-    jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)  # (K, 6)
-    residual = np.sum((target - source) * normals, axis=1)
+    directions = normals[None]  # (D, K, 3): each residual direction of each pair
+    if point_weight > 0.0:
+        axes = np.broadcast_to(np.eye(3)[:, None, :], (3, len(source), 3))
+        directions = np.concatenate([directions, axes], axis=0)
+    row_weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    row_weights = np.concatenate([row_weights[None], np.broadcast_to(point_weight * row_weights, (len(directions) - 1, len(source)))])
+    jacobian = np.concatenate([np.cross(arm, directions), directions], axis=2).reshape(-1, 6)  # (D K, 6)
+    residual = np.sum((target - source) * directions, axis=2).reshape(-1)
+    weighted = jacobian * row_weights.reshape(-1, 1)
     # The 6 x 6 normal equations (K x 6 lstsq was most of ICP's time); lstsq on them still
     # gives the minimum-norm step where the surface leaves a motion free (a plane, a cylinder).
-    solution, *_ = np.linalg.lstsq(jacobian.T @ jacobian, jacobian.T @ residual, rcond=None)
+    solution, *_ = np.linalg.lstsq(weighted.T @ jacobian, weighted.T @ residual, rcond=None)
     rotation = _rotation_from_vector(solution[:3])
     step = np.eye(4)
     step[:3, :3] = rotation

@@ -405,6 +405,11 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"refit_spacings": -1.0}, "refit_spacings"),
         ({"refit_spacings": float("nan")}, "refit_spacings"),
         ({"refit_spacings": float("inf")}, "refit_spacings"),
+        ({"refit_plane_steps": -1}, "refit_plane_steps"),
+        ({"refit_plane_steps": 1.5}, "refit_plane_steps"),
+        ({"refit_plane_steps": True}, "refit_plane_steps"),
+        ({"refit_point_weight": -0.1}, "refit_point_weight"),
+        ({"refit_point_weight": float("nan")}, "refit_point_weight"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
@@ -469,6 +474,30 @@ def test_a_calibration_stored_before_the_coarse_refit_returns_the_estimators_pos
     assert verification.refit_spacings == 0.0 and verification.descriptor_consensus == ("ransac",)
 
 
+def test_a_calibration_stored_before_the_plane_steps_returns_the_plain_refit(tmp_path, demo_pair):
+    """A manifest without ``refit_plane_steps`` (before session 21) returns the SVD re-fit
+    without ICP, as when its numbers were measured; the shipped manifest stores 3 steps, and
+    its pose without ICP differs from the plain re-fit's."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    assert manifest["runtime"]["verification"]["refit_plane_steps"] == 3
+    manifest["runtime"]["verification"].pop("refit_plane_steps")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    legacy = Registrar(model)
+    assert legacy.config.verification.refit_plane_steps == 0 and legacy.config.verification.refit_spacings == 2.0
+    shipped = Registrar()
+    assert shipped.config.verification.refit_plane_steps == 3
+    plain = legacy.register(demo_pair.source, demo_pair.target, refine=None).transformation
+    with_steps = shipped.register(demo_pair.source, demo_pair.target, refine=None).transformation
+    assert not np.array_equal(plain, with_steps)
+
+
 def test_mutual_nearest_descriptors_keep_only_mutual_best_pairs():
     """Source 0 and 1 both like target 0 best; only the mutual one (1 -> 0) is kept, 2 <-> 2 too;
     the similarity is the confidence, clipped at 0."""
@@ -523,6 +552,13 @@ def _coarse_hypothesis(estimator_pose: np.ndarray, verified_pose: np.ndarray):
     return Hypothesis(("fsr",), estimator_pose, verified_pose, {}, 0.9, True)
 
 
+def _refit(spacings: float, plane_steps: int = 0):
+    """A verification config that re-fits within ``spacings`` (and ``plane_steps`` plane steps)."""
+    from logdesc_rt.config import VerificationConfig
+
+    return VerificationConfig(refit_spacings=spacings, refit_plane_steps=plane_steps)
+
+
 def test_coarse_pose_refits_the_matches_the_verified_pose_explains():
     """Matches: 150 noisy right ones and 100 wrong. From an estimator's pose 4 degrees off and a
     verified pose 1 degree off, the re-fit lands closer to the truth than either (a least-squares
@@ -543,25 +579,93 @@ def test_coarse_pose_refits_the_matches_the_verified_pose_explains():
 
     refit = coarse_pose(
         _coarse_hypothesis(estimator_pose, verified_pose), source_matched, target_matched, confidences,
-        target_working, 2.0,
+        target_working, _refit(2.0),
     )
     error = rotation_error_deg(refit[:3, :3], truth[:3, :3])
     assert error < 0.3 and np.linalg.norm(refit[:3, 3] - truth[:3, 3]) < 0.01
     assert error < rotation_error_deg(verified_pose[:3, :3], truth[:3, :3])
 
     hypothesis = _coarse_hypothesis(estimator_pose, verified_pose)
-    kept = coarse_pose(hypothesis, source_matched, target_matched, confidences, target_working, 0.0)
+    kept = coarse_pose(hypothesis, source_matched, target_matched, confidences, target_working, _refit(0.0))
     assert kept is hypothesis.transformation
     elsewhere = truth.copy()
     elsewhere[0, 3] += 5.0  # two radii away: no match within two spacings
     far = _coarse_hypothesis(estimator_pose, elsewhere)
-    alone = coarse_pose(far, source_matched[:150], target_matched[:150], confidences[:150], target_working, 2.0)
+    alone = coarse_pose(far, source_matched[:150], target_matched[:150], confidences[:150], target_working, _refit(2.0))
     assert alone is far.transformation
     # Inliers all on one line fix no rotation about it: the estimator's pose, not a guess.
     line = np.outer(np.linspace(-1.0, 1.0, 50), [1.0, 0.2, -0.3])
     on_line = line @ truth[:3, :3].T + truth[:3, 3]
-    straight = coarse_pose(hypothesis, line, on_line, np.full(50, 0.5), target_working, 2.0)
+    straight = coarse_pose(hypothesis, line, on_line, np.full(50, 0.5), target_working, _refit(2.0))
     assert straight is hypothesis.transformation
+
+
+def test_coarse_pose_plane_steps_discount_matches_that_slide_along_the_surface():
+    """Two scans sample a surface independently: a learned match pairs a point with a neighbour
+    of its twin. Here every twin sits 0.02 along a curved surface from its match, all turning
+    the same way about one axis (the worst case: the slides add up to a rotation). The SVD
+    re-fit takes the slide for motion (about 1.5 degrees off); the point-to-plane steps, whose
+    residuals ignore motion along the surface, land within half of that (0.5). No steps: the SVD
+    re-fit exactly."""
+    from logdesc_rt.pose_selection import coarse_pose
+
+    def surface(x, y):
+        return 0.5 * np.sin(3.0 * x) * np.cos(3.0 * y)
+
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-1, 1, 5000), rng.uniform(-1, 1, 5000)
+    target_working = np.column_stack([x, y, surface(x, y)])
+    truth = _rigid([0.4, -0.2, 0.7], [0.5, -2.0, 1.0])
+    target_matched = target_working[rng.choice(len(target_working), 300, replace=False)]
+    around = np.column_stack([-target_matched[:, 1], target_matched[:, 0]])
+    slid = target_matched[:, :2] + 0.02 * around / np.linalg.norm(around, axis=1, keepdims=True)
+    twins = np.column_stack([slid, surface(slid[:, 0], slid[:, 1])])
+    source_matched = (twins - truth[:3, 3]) @ truth[:3, :3]  # truth maps each source point to its twin
+    confidences = rng.uniform(0.3, 1.0, size=300)
+    hypothesis = _coarse_hypothesis(truth, truth)
+
+    def error(plane_steps: int) -> float:
+        from logdesc_rt.config import VerificationConfig
+
+        pose = coarse_pose(
+            hypothesis, source_matched, target_matched, confidences, target_working,
+            VerificationConfig(refit_spacings=2.0, refit_plane_steps=plane_steps, refit_point_weight=0.1),
+        )
+        return rotation_error_deg(pose[:3, :3], truth[:3, :3])
+
+    least_squares, plane = error(0), error(3)
+    assert least_squares > 1.0 and plane < least_squares / 2
+    assert error(0) == rotation_error_deg(
+        coarse_pose(hypothesis, source_matched, target_matched, confidences, target_working, _refit(2.0))[:3, :3],
+        truth[:3, :3],
+    )
+
+
+def test_coarse_pose_plane_steps_follow_the_clouds_frame():
+    """The plane steps linearise about the matches' centroid: the same pair 1e5 away and in
+    millimetres re-fits to the same pose (mapped back)."""
+    from logdesc_rt.config import VerificationConfig
+    from logdesc_rt.pose_selection import coarse_pose
+
+    rng = np.random.default_rng(8)
+    x, y = rng.uniform(-1, 1, 3000), rng.uniform(-1, 1, 3000)
+    target_working = np.column_stack([x, y, 0.4 * np.sin(3.0 * x) * np.cos(2.0 * y)])
+    truth = _rigid([0.1, 0.3, -0.2], [0.2, 0.1, -0.1])
+    target_matched = target_working[rng.choice(3000, 200, replace=False)]
+    source_matched = (target_matched + rng.normal(scale=0.01, size=(200, 3)) - truth[:3, 3]) @ truth[:3, :3]
+    confidences = rng.uniform(0.3, 1.0, size=200)
+    config = VerificationConfig(refit_plane_steps=3)
+    here = coarse_pose(_coarse_hypothesis(truth, truth), source_matched, target_matched, confidences, target_working, config)
+    shift, scale = np.array([1e5, -2e5, 3e4]), 1000.0
+    moved_truth = truth.copy()
+    moved_truth[:3, 3] = scale * truth[:3, 3] + shift - truth[:3, :3] @ shift
+    there = coarse_pose(
+        _coarse_hypothesis(moved_truth, moved_truth), scale * source_matched + shift, scale * target_matched + shift,
+        confidences, scale * target_working + shift, config,
+    )
+    assert rotation_error_deg(there[:3, :3], here[:3, :3]) < 1e-6
+    back = there[:3, 3] - shift + there[:3, :3] @ shift
+    assert np.allclose(back / scale, here[:3, 3], atol=1e-8)
 
 
 def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(registrar, demo_pair):
@@ -575,7 +679,7 @@ def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(r
     c = pair.correspondences
     expected = coarse_pose(
         chosen, pair.source_points[c[:, 0]], pair.target_points[c[:, 1]], pair.matches.confidence,
-        pair.target_points[pair.target_index], registrar.config.verification.refit_spacings,
+        pair.target_points[pair.target_index], registrar.config.verification,
     )
     assert np.array_equal(result.transformation, expected)
     assert not np.array_equal(expected, chosen.transformation)  # the refit moved it
