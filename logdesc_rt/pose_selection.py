@@ -96,10 +96,11 @@ def register_matched(
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
         source_matched, target_matched = pair.source_points[correspondences[:, 0]], pair.target_points[correspondences[:, 1]]
-        pose = coarse_pose(
-            chosen, source_matched, target_matched, pair.matches.confidence,
-            pair.target_points[pair.target_index], config.verification,
-        )
+        with timed(timings, "pose"):  # the returned pose is estimated here too
+            pose = coarse_pose(
+                chosen, source_matched, target_matched, pair.matches.confidence,
+                pair.target_points[pair.target_index], config.verification,
+            )
     else:
         chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
         chosen_estimator = config.estimator
