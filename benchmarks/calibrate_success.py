@@ -190,10 +190,9 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--descriptor-consensus", nargs="*", default=None, choices=CANDIDATE_ESTIMATORS,
                          help="the estimators run on the descriptors' own mutual nearest neighbours (none: "
                               "give the flag alone; default: VerificationConfig's)")
-    fitting.add_argument("--refit-plane-steps", type=int, default=None,
-                         help="point-to-plane steps of the pose returned without ICP (default: VerificationConfig's)")
-    fitting.add_argument("--refit-point-weight", type=float, default=None,
-                         help="their point-to-point term's weight (default: VerificationConfig's)")
+    fitting.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                         help="VerificationConfig settings over its defaults, VALUE as JSON (e.g. "
+                              "refit_plane_steps=3 turn_over_spin=true); stored with the calibration")
     fitting.add_argument("--folds", type=int, default=5,
                          help="held-out estimate of the flag by shape folds (0 or 1: none)")
     fitting.add_argument("--split", choices=SPLITS, default="v3",
@@ -207,10 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
-        refit = {name: value for name, value in (("refit_plane_steps", args.refit_plane_steps),
-                                                 ("refit_point_weight", args.refit_point_weight)) if value is not None}
+        settings = {}
+        for item in args.set:
+            key, _, value = item.partition("=")
+            settings[key] = json.loads(value)
         fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus,
-            args.folds, args.split, refit)
+            args.folds, args.split, settings)
     return 0
 
 
@@ -423,15 +424,15 @@ def _flag_rows(summary: dict) -> list[str]:
 def fit(
     groups: list[str], cache: Path = CACHE, report: Path = REPORT, manifest_dir: Path | None = None,
     candidates: tuple[str, ...] | None = None, descriptor_consensus: tuple[str, ...] | None = None,
-    folds: int = 0, split: str = "v3", refit: dict | None = None,
+    folds: int = 0, split: str = "v3", settings: dict | None = None,
 ) -> None:
     """Features of every cached hypothesis, the calibration, its report (and manifest).
 
     ``folds`` > 1 adds a held-out estimate of the flag: the pairs' shapes are dealt into that
     many folds, and each fold's pairs are flagged by a calibration fitted on the other folds
     alone (``split``: the validation shapes the cache was collected from, where its model
-    record does not say). ``refit``: VerificationConfig settings of the pose returned without
-    ICP (``refit_plane_steps``, ``refit_point_weight``) over its defaults.
+    record does not say). ``settings``: other VerificationConfig values over its defaults
+    (e.g. ``refit_plane_steps``, ``turn_over_spin``).
     """
     import dataclasses
 
@@ -442,7 +443,7 @@ def fit(
     base = VerificationConfig() if candidates is None else VerificationConfig(candidates=tuple(candidates))
     if descriptor_consensus is not None:
         base = dataclasses.replace(base, descriptor_consensus=tuple(descriptor_consensus))
-    base = dataclasses.replace(base, **(refit or {}))
+    base = dataclasses.replace(base, **(settings or {}))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
     if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
@@ -614,6 +615,7 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "success_threshold": fitted.success_threshold,
         "candidates": list(fitted.candidates),
         "turn_over_axes": fitted.turn_over_axes,
+        "turn_over_spin": fitted.turn_over_spin,
         "second_consensus": list(fitted.second_consensus),
         "descriptor_consensus": list(fitted.descriptor_consensus),
         "refit_spacings": fitted.refit_spacings,

@@ -50,6 +50,9 @@ stage produces) proposes alternatives, refined and scored with the rest:
   a few batched point-to-point ICP iterations on a few source points screen them, and the one
   that fits best is refined (the ICP finds the turn about the plate's normal). The
   hypothesis' own pose is its refined one (a raw half-turn is no estimate);
+- ``spun`` (``turn_over_spin``): its source spun by a half-turn about its least principal
+  axis, the normal of that plane (a table, a tub or a bed that looks the same from either
+  end), screened the same way, alone, and refined;
 - ``unexplained_<estimator>``: the ``second_consensus`` estimators on the matches the leading
   pose leaves unexplained (:func:`~logdesc_rt.pose.candidates.unexplained_candidate_poses`, by
   the caller, who holds the matches in network units).
@@ -84,6 +87,7 @@ from .sampling import seeded_subset
 # not the working size, which may change without refitting).
 LOG_MATCH_SCALE = math.log1p(1024)
 TURNED_OVER = "turned_over"  # the second look's half-turned hypothesis (module docstring)
+SPUN = "spun"  # the second look's half-turn about the source's least principal axis
 # The turn-overs are screened by this short ICP on this many source points before one is refined.
 TURN_OVER_SCREEN_POINTS = 256
 TURN_OVER_SCREEN_ITERATIONS = 10
@@ -199,6 +203,8 @@ class PoseVerifier:
         # (eigh sorts them last), which turn a plate over, whichever way it lies.
         angles = np.pi * np.arange(config.turn_over_axes) / max(1, config.turn_over_axes)
         self.turn_overs = [_half_turn(np.cos(a) * axes[:, 2] + np.sin(a) * axes[:, 1], self.centre) for a in angles]
+        # ... and the spin in that plane (about the least axis), which no turn-over or ICP reaches.
+        self.spin = self.half_turns[0] if config.turn_over_spin else None
         self.screen_source = self.source[seeded_subset(len(self.source), TURN_OVER_SCREEN_POINTS, generator)]
 
     def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
@@ -316,7 +322,7 @@ class PoseVerifier:
                 Hypothesis(
                     estimators=tuple(names),
                     # A turn-over's raw half-turn is no estimate: its pose is the refined one.
-                    transformation=poses[i] if names[0] == TURNED_OVER else pose,
+                    transformation=poses[i] if names[0] in (TURNED_OVER, SPUN) else pose,
                     verified_transformation=poses[i],
                     features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
                     confidence=logistic_confidence(features, config),
@@ -346,7 +352,7 @@ class PoseVerifier:
     ) -> list[tuple[str, np.ndarray]]:
         """The second look's candidates (module docstring), from the refined pose with the best
         :meth:`quick_score` (the lowest group index among ties)."""
-        if not self.turn_overs and second_consensus is None:
+        if not self.turn_overs and self.spin is None and second_consensus is None:
             return []
         leading = verified[max(sorted(verified), key=lambda i: self.quick_score(verified[i]))]
         alternatives = []
@@ -358,6 +364,14 @@ class PoseVerifier:
                 TURN_OVER_SCREEN_ITERATIONS,
             )
             alternatives.append((TURNED_OVER, poses[int(np.argmax(fitness))]))  # the first among ties
+        if self.spin is not None:
+            # Screened alone, not against the turn-overs: a spin that fits less well than the
+            # best turn-over still gets its refined score.
+            poses, _ = point_to_point_icp_batch(
+                self.screen_source, self.target_tree, self.target, (leading @ self.spin)[None], self.distance,
+                TURN_OVER_SCREEN_ITERATIONS,
+            )
+            alternatives.append((SPUN, poses[0]))
         if second_consensus is not None:
             alternatives += second_consensus(leading)
         return alternatives

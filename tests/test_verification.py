@@ -358,6 +358,39 @@ def test_the_second_look_turns_a_flipped_plate_back(axis_deg):
     assert rotation_error_deg(without.best.verified_transformation[:3, :3], truth[:3, :3]) > 170.0
 
 
+def test_the_second_looks_spin_turns_a_plate_back_end_to_end():
+    """The only candidate, and every match, is the plate spun half a turn in its own plane (a
+    tub or a table seen from the wrong end): no turn-over (axes in the plane) and no ICP reaches
+    the truth from there. With ``turn_over_spin`` the spun hypothesis finds it and ranks first;
+    without, the spin stays."""
+    rng = np.random.default_rng(4)
+    # A 2 x 1 plate whose ripples look the same spun half a turn (only the ridge near one end
+    # tells the ends apart), so that the spun start lies in the ICP's basin of the truth.
+    x, y = rng.uniform(-1, 1, 3000), rng.uniform(-0.5, 0.5, 3000)
+    plate = np.column_stack([x, y, 0.04 * np.cos(4.0 * x) * np.cos(5.0 * y)])
+    ridge = np.column_stack([rng.uniform(0.4, 0.8, 600), rng.uniform(-0.1, 0.3, 600), rng.uniform(0.0, 0.25, 600)])
+    source = np.vstack([plate, ridge]) + rng.normal(scale=0.003, size=(3600, 3))
+    truth = _rigid([0.3, -0.5, 0.9], [0.4, -0.2, 0.1])
+    target = source @ truth[:3, :3].T + truth[:3, 3] + rng.normal(scale=0.003, size=source.shape)
+    centre = source.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((source - centre).T))
+    spin = np.eye(4)
+    spin[:3, :3] = Rotation.from_rotvec(np.pi * axes[:, 0]).as_matrix()  # about the plate's normal
+    spin[:3, 3] = centre - spin[:3, :3] @ centre
+    spun = truth @ spin
+    matched = source[:50]
+    arguments = (source, target, matched, matched @ spun[:3, :3].T + spun[:3, 3], np.full(50, 0.5), 1.0)
+
+    with_spin = PoseVerifier(*arguments, VerificationConfig(turn_over_spin=True)).verify([("fsr", spun)])
+    best = with_spin.best
+    assert best.estimators[0] == "spun"
+    assert rotation_error_deg(best.verified_transformation[:3, :3], truth[:3, :3]) < 1.0
+    assert np.array_equal(best.transformation, best.verified_transformation)
+
+    without = PoseVerifier(*arguments, VerificationConfig(turn_over_spin=False)).verify([("fsr", spun)])
+    assert all(rotation_error_deg(h.verified_transformation[:3, :3], truth[:3, :3]) > 170.0 for h in without.hypotheses)
+
+
 def test_the_second_consensus_finds_the_pose_the_outvoted_matches_agree_on():
     """60 % of the matches agree on a wrong pose, 40 % on the true one: every estimator reads
     the wrong one; without the matches it explains, RANSAC finds the true one."""
@@ -410,6 +443,7 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"refit_plane_steps": True}, "refit_plane_steps"),
         ({"refit_point_weight": -0.1}, "refit_point_weight"),
         ({"refit_point_weight": float("nan")}, "refit_point_weight"),
+        ({"turn_over_spin": 1}, "turn_over_spin"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
