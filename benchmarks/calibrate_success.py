@@ -616,7 +616,6 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "candidates": list(fitted.candidates),
         "turn_over_axes": fitted.turn_over_axes,
         "turn_over_spin": fitted.turn_over_spin,
-        "icp_spacings": fitted.icp_spacings,
         "second_consensus": list(fitted.second_consensus),
         "descriptor_consensus": list(fitted.descriptor_consensus),
         "refit_spacings": fitted.refit_spacings,

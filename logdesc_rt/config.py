@@ -232,9 +232,6 @@ class VerificationConfig(_DictMixin):
         refine_candidates: this many best-scoring distinct candidates get a short ICP (all of
             them by default: there are at most five).
         icp_iterations: iterations of that ICP (point-to-plane, on the subsets).
-        icp_spacings: that ICP pairs points within ``distance_fraction`` x scale, or within
-            this many of the scored target's point spacings where that is farther (sparse
-            clouds); 0: the distance alone.
         same_pose_deg: two candidates closer than this (and than ``distance_fraction`` in
             translation) are one hypothesis; it also bounds how far the returned unrefined
             pose may sit from its verified (refined) pose for a success.
@@ -287,7 +284,6 @@ class VerificationConfig(_DictMixin):
     match_tolerance: float = 0.08
     refine_candidates: int = 5
     icp_iterations: int = 20
-    icp_spacings: float = 0.0
     same_pose_deg: float = 4.0
     turn_over_axes: int = 6
     turn_over_spin: bool = False
@@ -351,8 +347,6 @@ class VerificationConfig(_DictMixin):
             value = getattr(self, name)
             if not 0.0 < value < float("inf"):  # also rejects NaN
                 raise ValueError(f"VerificationConfig.{name} must be finite and > 0, got {value}")
-        if not 0.0 <= self.icp_spacings < float("inf"):  # also rejects NaN
-            raise ValueError(f"VerificationConfig.icp_spacings must be finite and >= 0, got {self.icp_spacings}")
         if not 0.0 <= self.refit_spacings < float("inf"):  # also rejects NaN
             raise ValueError(f"VerificationConfig.refit_spacings must be finite and >= 0, got {self.refit_spacings}")
         if isinstance(self.refit_plane_steps, bool) or not isinstance(self.refit_plane_steps, int) or self.refit_plane_steps < 0:

@@ -143,7 +143,7 @@ LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (before "core")."""
 LEGACY_VERIFICATION_OFF = {
     "turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0,
-    "refit_plane_steps": 0, "turn_over_spin": False, "icp_spacings": 0.0,
+    "refit_plane_steps": 0, "turn_over_spin": False,
 }
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
 filled in alone; the second look before session 16, the descriptors' candidates before 17,

@@ -192,9 +192,6 @@ class PoseVerifier:
         self.target_tree = KDTree(self.target)
         spacing, _ = self.target_tree.query(self.target, k=2)
         self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
-        # The short ICP pairs points within d, or within icp_spacings point spacings where the
-        # clouds are so sparse that d holds about one spacing (separate samples meet farther).
-        self.icp_distance = max(self.distance, config.icp_spacings * float(np.median(spacing[:, 1])))
         self.match_tolerance = config.match_tolerance * scale
         self.centre = self.source.mean(axis=0)
         self.target_normals = estimate_normals(self.target, tree=self.target_tree)
@@ -272,7 +269,7 @@ class PoseVerifier:
             self.source,
             self.target,
             pose,
-            self.icp_distance,
+            self.distance,
             "point_to_plane",
             max_iterations=self.config.icp_iterations,
             adaptive=True,

@@ -444,8 +444,6 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"refit_point_weight": -0.1}, "refit_point_weight"),
         ({"refit_point_weight": float("nan")}, "refit_point_weight"),
         ({"turn_over_spin": 1}, "turn_over_spin"),
-        ({"icp_spacings": -1.0}, "icp_spacings"),
-        ({"icp_spacings": float("nan")}, "icp_spacings"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
