@@ -349,10 +349,13 @@ class VerificationConfig(_DictMixin):
                 raise ValueError(f"VerificationConfig.{name} must be finite and > 0, got {value}")
         if not 0.0 <= self.refit_spacings < float("inf"):  # also rejects NaN
             raise ValueError(f"VerificationConfig.refit_spacings must be finite and >= 0, got {self.refit_spacings}")
-        if isinstance(self.refit_plane_steps, bool) or not isinstance(self.refit_plane_steps, int) or self.refit_plane_steps < 0:
-            raise ValueError(f"VerificationConfig.refit_plane_steps must be an integer >= 0, got {self.refit_plane_steps!r}")
+        steps = self.refit_plane_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"VerificationConfig.refit_plane_steps must be an integer >= 0, got {steps!r}")
         if not 0.0 <= self.refit_point_weight < float("inf"):  # also rejects NaN
-            raise ValueError(f"VerificationConfig.refit_point_weight must be finite and >= 0, got {self.refit_point_weight}")
+            raise ValueError(
+                f"VerificationConfig.refit_point_weight must be finite and >= 0, got {self.refit_point_weight}"
+            )
         if self.refine_candidates < 1:
             raise ValueError(f"VerificationConfig.refine_candidates must be >= 1, got {self.refine_candidates}")
         if self.icp_iterations < 1:

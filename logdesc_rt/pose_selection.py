@@ -6,8 +6,8 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
     back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
     each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
-    re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP -> fitness / inlier RMSE on the full
-    clouds -> the success flag.
+    re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP ->
+    fitness / inlier RMSE on the full clouds -> the success flag.
 """
 
 from __future__ import annotations

@@ -386,8 +386,9 @@ def plane_fit_step(
     if point_weight > 0.0:
         axes = np.broadcast_to(np.eye(3)[:, None, :], (3, len(source), 3))
         directions = np.concatenate([directions, axes], axis=0)
-    row_weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
-    row_weights = np.concatenate([row_weights[None], np.broadcast_to(point_weight * row_weights, (len(directions) - 1, len(source)))])
+    pair_weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    point_rows = np.broadcast_to(point_weight * pair_weights, (len(directions) - 1, len(source)))
+    row_weights = np.concatenate([pair_weights[None], point_rows])  # (D, K)
     jacobian = np.concatenate([np.cross(arm, directions), directions], axis=2).reshape(-1, 6)  # (D K, 6)
     residual = np.sum((target - source) * directions, axis=2).reshape(-1)
     weighted = jacobian * row_weights.reshape(-1, 1)

@@ -689,7 +689,9 @@ def test_coarse_pose_plane_steps_follow_the_clouds_frame():
     source_matched = (target_matched + rng.normal(scale=0.01, size=(200, 3)) - truth[:3, 3]) @ truth[:3, :3]
     confidences = rng.uniform(0.3, 1.0, size=200)
     config = VerificationConfig(refit_plane_steps=3)
-    here = coarse_pose(_coarse_hypothesis(truth, truth), source_matched, target_matched, confidences, target_working, config)
+    here = coarse_pose(
+        _coarse_hypothesis(truth, truth), source_matched, target_matched, confidences, target_working, config
+    )
     shift, scale = np.array([1e5, -2e5, 3e4]), 1000.0
     moved_truth = truth.copy()
     moved_truth[:3, 3] = scale * truth[:3, 3] + shift - truth[:3, :3] @ shift
