@@ -206,10 +206,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
     else:
+        from logdesc_rt.config import VerificationConfig
+
         settings = {}
         for item in args.set:
-            key, _, value = item.partition("=")
-            settings[key] = json.loads(value)
+            key, equals, value = item.partition("=")
+            if not equals or key not in VerificationConfig.__dataclass_fields__:
+                parser.error(f"--set {item!r}: expected KEY=VALUE with KEY a VerificationConfig field")
+            try:
+                settings[key] = json.loads(value)
+            except json.JSONDecodeError:
+                parser.error(f"--set {item!r}: VALUE must be JSON (true, 3, 0.1, [\"ransac\"])")
         fit(args.groups, args.cache, args.report, args.manifest, args.candidates, args.descriptor_consensus,
             args.folds, args.split, settings)
     return 0
