@@ -200,11 +200,24 @@ def main(argv: list[str] | None = None) -> int:
                               "session 20 records its own, which wins)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
-    for command in (collecting, fitting):
+    counting = commands.add_parser(
+        "count", help="per group, the pairs whose chosen hypothesis is right (verified, without ICP) and the claims"
+    )
+    counting.add_argument("--report", type=Path, default=None,
+                          help="a fit's report (.json) whose calibration chooses and flags (default: --model-dir's)")
+    counting.add_argument("--model-dir", type=Path, default=None, help="a model whose manifest's calibration is used "
+                                                                       "(default: the bundled one)")
+    counting.add_argument("--by-class", action="store_true",
+                          help="also count the scan pairs by their shape's class (three-way split caches)")
+    for command in (collecting, fitting, counting):
         command.add_argument("--cache", type=Path, default=CACHE, help="the matches' cache (one per model)")
     args = parser.parse_args(argv)
     if args.command == "collect":
         collect(args.groups, args.count, args.threads, args.model_dir, args.cache, args.split)
+    elif args.command == "count":
+        if not (args.cache / "hypotheses.json").exists():
+            parser.error(f"{args.cache}: no hypotheses.json; run fit on this cache first")
+        print_counts(args.cache, args.report, args.model_dir, args.by_class)
     else:
         from logdesc_rt.config import VerificationConfig
 
@@ -569,6 +582,48 @@ def flag_summary(outcomes: dict[str, dict], groups: list[str]) -> dict[str, dict
             right = np.array([outcomes[p][f"{mode}_right"] for p in member])
             summary[mode][group] = flag_quality(claimed, right)
     return summary
+
+
+def group_counts(rows: dict[str, list[dict]], fitted, classes: dict[str, str] | None = None) -> dict[str, dict]:
+    """Per group (and, given ``classes`` {pair: class}, per scan class as ``val_scan:<class>``):
+    pairs; whose chosen hypothesis (``fitted``'s calibration) is right verified and without
+    ICP; the claims without ICP and the right ones among them; and the pairs with any right
+    verified hypothesis (what a perfect choice would reach)."""
+    outcomes = flag_outcomes([row for pair in rows.values() for row in pair], fitted)
+    counts: dict[str, dict] = {}
+    for pair, hypotheses in rows.items():
+        if pair not in outcomes:
+            continue  # fewer than three matches: no hypothesis
+        outcome = outcomes[pair]
+        keys = [pair.split("/")[0]] + ([f"val_scan:{classes[pair]}"] if classes and pair in classes else [])
+        for key in keys:
+            count = counts.setdefault(key, dict.fromkeys(
+                ("pairs", "verified_right", "unrefined_right", "claimed", "right_among_claimed", "any_right"), 0))
+            count["pairs"] += 1
+            count["verified_right"] += outcome["refined_right"]
+            count["unrefined_right"] += outcome["unrefined_right"]
+            count["claimed"] += outcome["unrefined_claimed"]
+            count["right_among_claimed"] += outcome["unrefined_claimed"] and outcome["unrefined_right"]
+            count["any_right"] += any(h["verified_right"] for h in hypotheses)
+    return counts
+
+
+def print_counts(cache: Path, report: Path | None, model_dir: Path | None, by_class: bool) -> None:
+    """:func:`group_counts` of a fitted cache, printed a line per group."""
+    from logdesc_rt.config import VerificationConfig
+    from logdesc_rt.network import bundled_model_dir, read_manifest
+
+    if report is not None:
+        fitted = VerificationConfig.from_dict(json.loads(report.read_text())["verification_config"])
+    else:
+        fitted = read_manifest(model_dir or bundled_model_dir()).runtime_config().verification
+    rows = json.loads((cache / "hypotheses.json").read_text())["rows"]
+    classes = None
+    if by_class:
+        scans = sorted(pair for pair in rows if pair.startswith("val_scan/"))
+        classes = {pair: name.rsplit("_", 1)[0] for pair, name in pair_shapes(scans, "three-way").items()}
+    for key, count in sorted(group_counts(rows, fitted, classes).items()):
+        print(f"{key:28s} " + " ".join(f"{name} {value}" for name, value in count.items()))
 
 
 def pair_shapes(pairs: list[str], split: str) -> dict[str, str]:

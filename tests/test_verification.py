@@ -264,6 +264,35 @@ def test_the_calibrations_resampled_group_is_new_pairs_and_leaves_the_others_see
     assert np.median(distance) < 0.1
 
 
+def test_count_reads_the_chosen_hypothesis_of_each_pair():
+    """calibrate_success.group_counts: the calibration chooses each pair's most confident
+    hypothesis; its verified / unrefined rightness and claim are counted per group and per
+    scan class, and "any_right" counts a right hypothesis that was not chosen."""
+    calibrate_success = _calibrate_success()
+    config = VerificationConfig(weights=(1.0,) + (0.0,) * 9, bias=0.0, success_threshold=0.6)
+
+    def row(pair, fitness, verified, unrefined, within=True):
+        features = [fitness] + [0.0] * 9
+        return {"pair": pair, "group": pair.split("/")[0], "features": features, "verified_right": verified,
+                "unrefined_right": unrefined, "within_verified": within}
+
+    rows = {
+        # chosen: the first (fitness 2, confidence 0.88), right and claimed
+        "val_scan/0000": [row("val_scan/0000", 2.0, True, True), row("val_scan/0000", 0.1, False, False)],
+        # chosen: a wrong one; a right one exists below it
+        "val_scan/0001": [row("val_scan/0001", 1.0, False, False), row("val_scan/0001", 0.5, True, True)],
+        # chosen: right verified, the unrefined pose right but astray (not claimed without ICP)
+        "val_in_range/0000": [row("val_in_range/0000", 3.0, True, True, within=False)],
+        "val_in_range/0001": [],  # too few matches: no hypothesis, not counted
+    }
+    counts = calibrate_success.group_counts(rows, config, {"val_scan/0000": "bench", "val_scan/0001": "bench"})
+    assert counts["val_scan"] == {"pairs": 2, "verified_right": 1, "unrefined_right": 1, "claimed": 2,
+                                  "right_among_claimed": 1, "any_right": 2}
+    assert counts["val_scan:bench"] == counts["val_scan"]
+    assert counts["val_in_range"] == {"pairs": 1, "verified_right": 1, "unrefined_right": 1, "claimed": 0,
+                                      "right_among_claimed": 0, "any_right": 1}
+
+
 def test_collect_refuses_a_cache_of_another_model(tmp_path):
     """The matches of two models never mix in one calibration cache."""
     calibrate_success = _calibrate_success()
