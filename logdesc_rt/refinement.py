@@ -382,24 +382,34 @@ def plane_fit_step(
     """
     pivot = source.mean(axis=0)
     arm = source - pivot
-    directions = normals[None]  # (D, K, 3): each residual direction of each pair
+    offset = target - source
+    matrix, rhs = _normal_equations(arm, offset, normals, weights)
     if point_weight > 0.0:
-        axes = np.broadcast_to(np.eye(3)[:, None, :], (3, len(source), 3))
-        directions = np.concatenate([directions, axes], axis=0)
-    pair_weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
-    point_rows = np.broadcast_to(point_weight * pair_weights, (len(directions) - 1, len(source)))
-    row_weights = np.concatenate([pair_weights[None], point_rows])  # (D, K)
-    jacobian = np.concatenate([np.cross(arm, directions), directions], axis=2).reshape(-1, 6)  # (D K, 6)
-    residual = np.sum((target - source) * directions, axis=2).reshape(-1)
-    weighted = jacobian * row_weights.reshape(-1, 1)
-    # The 6 x 6 normal equations (K x 6 lstsq was most of ICP's time); lstsq on them still
-    # gives the minimum-norm step where the surface leaves a motion free (a plane, a cylinder).
-    solution, *_ = np.linalg.lstsq(weighted.T @ jacobian, weighted.T @ residual, rcond=None)
+        point_weights = point_weight * (np.ones(len(source)) if weights is None else np.asarray(weights))
+        for axis in np.eye(3):
+            axis_matrix, axis_rhs = _normal_equations(arm, offset, np.broadcast_to(axis, arm.shape), point_weights)
+            matrix, rhs = matrix + axis_matrix, rhs + axis_rhs
+    # lstsq on the 6 x 6 normal equations still gives the minimum-norm step where the surface
+    # leaves a motion free (a plane, a cylinder).
+    solution, *_ = np.linalg.lstsq(matrix, rhs, rcond=None)
     rotation = _rotation_from_vector(solution[:3])
     step = np.eye(4)
     step[:3, :3] = rotation
     step[:3, 3] = pivot + solution[3:] - rotation @ pivot
     return step
+
+
+def _normal_equations(
+    arm: np.ndarray, offset: np.ndarray, directions: np.ndarray, weights: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(6, 6) and (6,) normal equations of the residuals ``offset . d_k`` along one direction
+    per pair, linearised in (rotation about the pivot, translation): rows [arm_k x d_k, d_k].
+    The 6 x 6 form, not a K x 6 lstsq, which was most of ICP's time; no copy is weighted when
+    ``weights`` is None (ICP's hot path)."""
+    jacobian = np.concatenate([np.cross(arm, directions), directions], axis=1)  # (K, 6)
+    residual = np.sum(offset * directions, axis=1)
+    weighted = jacobian if weights is None else jacobian * np.asarray(weights, dtype=np.float64)[:, None]
+    return weighted.T @ jacobian, weighted.T @ residual
 
 
 def point_to_point_icp_batch(
