@@ -107,6 +107,42 @@ def transformed_source_rmse(source, transformation_pred, transformation_gt) -> n
     return float(distances) if distances.ndim == 0 else distances
 
 
+def twin_distance(shape, transformation_pred, transformation_gt) -> float:
+    """How far apart two poses put a whole object, up to the object's own symmetries.
+
+    The mean two-sided closest-point distance between ``shape`` moved by the prediction and
+    moved by the truth, over the shape's radius (largest distance from its centroid). Unlike
+    :func:`transformed_source_rmse` it pairs each point with the *nearest* point of the other
+    copy, so a pose that differs from the truth by a symmetry of the shape (a bottle turned
+    about its axis, a table by a half-turn) scores about the sampling's spacing, while a pose
+    that moves the object visibly scores the size of that motion. The pose estimation
+    literature's ADD-S, made two-sided and relative (``benchmarks/results/symmetry_twins``).
+
+    Args:
+        shape: (P, 3) points of the complete object in the source frame (P of several
+            thousand; P >= 2, not all equal).
+        transformation_pred, transformation_gt: (4, 4) source -> target transforms.
+
+    Returns:
+        float >= 0: that distance in units of the shape's radius.
+    """
+    from pykdtree.kdtree import KDTree  # deferred: the other metrics need no k-d tree
+
+    points = _as_matrices(shape, (3,), "shape")
+    if points.ndim != 2 or len(points) < 2:
+        raise ValueError(f"twin_distance: shape must be (P, 3) with P >= 2, got {points.shape}")
+    radius = float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+    if radius == 0.0:
+        raise ValueError("twin_distance: the shape's points are all equal")
+    predicted = _as_matrices(transformation_pred, (4, 4), "transformation_pred")
+    truth = _as_matrices(transformation_gt, (4, 4), "transformation_gt")
+    moved_pred = points @ predicted[:3, :3].T + predicted[:3, 3]
+    moved_truth = points @ truth[:3, :3].T + truth[:3, 3]
+    forward, _ = KDTree(moved_truth).query(moved_pred, k=1)
+    backward, _ = KDTree(moved_pred).query(moved_truth, k=1)
+    return float((forward.mean() + backward.mean()) / (2.0 * radius))
+
+
 def _wrap_degrees(angles: np.ndarray) -> np.ndarray:
     """Angles mapped into [-180, 180)."""
     return (angles + 180.0) % 360.0 - 180.0

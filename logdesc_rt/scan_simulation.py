@@ -217,10 +217,12 @@ def make_scan_pair(
     pose = np.eye(4)  # y = G_t G_s^T x + shift
     pose[:3, :3] = target_turn @ source_turn.T
     pose[:3, 3] = target_shift
+    shape_to_source = np.eye(4)  # the views are in the shape's frame; the source turned by G_s
+    shape_to_source[:3, :3] = source_turn
 
     return pair_in_network_frame(
         SCAN_PROTOCOL, source, target, pose, gt_match_src, gt_match_tgt, normalization_config,
-        np.array([view_angle, 0.0, 0.0]),
+        np.array([view_angle, 0.0, 0.0]), shape_to_source=shape_to_source,
     )
 
 

@@ -78,6 +78,10 @@ class Pair:
         T_gt_network: (4, 4) float64 pose between the network-frame clouds.
         euler_zyx_deg: (3,) float64 the drawn angles (z, y, x), degrees (the paper's motion:
             without ``make_pair``'s ``any_relative_rotation`` turn).
+        shape_to_source: (4, 4) float64 pose placing the complete shape the pair was drawn from
+            in the source's user frame (simulated scans, :mod:`logdesc_rt.scan_simulation`), so
+            that an estimate can be judged on the whole object
+            (:func:`~logdesc_rt.metrics.twin_distance`); None for the other protocols.
     """
 
     protocol: str
@@ -91,6 +95,7 @@ class Pair:
     target_network: np.ndarray
     T_gt_network: np.ndarray
     euler_zyx_deg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    shape_to_source: np.ndarray | None = None
 
 
 def pair_in_network_frame(
@@ -102,6 +107,7 @@ def pair_in_network_frame(
     gt_match_tgt: np.ndarray,
     normalization_config: NormalizationConfig,
     euler_zyx_deg: np.ndarray,
+    shape_to_source: np.ndarray | None = None,
 ) -> Pair:
     """A :class:`Pair` from user-frame clouds, pose and labels: the runtime's normalisation is
     fitted to the clouds, and the network-frame clouds and pose are derived from it (every
@@ -119,6 +125,7 @@ def pair_in_network_frame(
         target_network=normalization.target_to_network(target),
         T_gt_network=normalization.pose_to_network_frame(pose),
         euler_zyx_deg=euler_zyx_deg,
+        shape_to_source=shape_to_source,
     )
 
 

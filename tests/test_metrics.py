@@ -16,6 +16,7 @@ from logdesc_rt.metrics import (
     rotation_error_deg,
     transformed_source_rmse,
     translation_error,
+    twin_distance,
 )
 
 
@@ -145,3 +146,35 @@ def test_matching_metrics_leave_ignored_points_out():
         matching_metrics(predicted, np.array([0, 1, -3, 0, 0, 0]))
     with pytest.raises(ValueError, match=">= 0 or -1"):  # a prediction is never "ignored"
         matching_metrics(truth, truth)
+
+
+def test_twin_distance_forgives_a_shape_its_own_symmetry_and_nothing_else():
+    rng = np.random.default_rng(0)
+    # A cylinder-like drum (symmetric under any turn about z) and a lumpy, asymmetric body.
+    angle = rng.uniform(0.0, 2.0 * np.pi, 10_000)  # as many as the benchmark's dense shapes
+    height = rng.uniform(-0.5, 0.5, 10_000)
+    drum = np.column_stack([0.8 * np.cos(angle), 0.8 * np.sin(angle), height])
+    lumpy = np.column_stack([0.8 * np.cos(angle) * (1.0 + 0.3 * np.cos(angle)), 0.5 * np.sin(angle),
+                             height + 0.2 * np.cos(angle)])
+    truth = np.eye(4)
+    truth[:3, 3] = [2.0, -1.0, 0.5]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 49.0, degrees=True).as_matrix()
+    assert twin_distance(drum, truth, truth) == 0.0
+    # The drum turned about its axis: a twin, at about the sampling's spacing, under the 0.02 of
+    # benchmarks/scan_pairs.py's rule.
+    assert twin_distance(drum, truth @ turn, truth) < 0.02
+    # The asymmetric body turned the same way, or the drum shifted by 5 % of its radius: not.
+    assert twin_distance(lumpy, truth @ turn, truth) > 0.05
+    radius = np.linalg.norm(drum - drum.mean(axis=0), axis=1).max()
+    across, along = truth.copy(), truth.copy()
+    across[:3, 3] += [0.05 * radius, 0.0, 0.0]
+    assert twin_distance(drum, across, truth) > 0.02
+    # Its limit, by construction: a slide along the open drum's axis shows only at its two rims,
+    # so it scores as a near-twin (benchmarks/results/symmetry_twins/README.md says so).
+    along[:3, 3] += [0.0, 0.0, 0.05 * radius]
+    assert twin_distance(drum, along, truth) < 0.02
+    with pytest.raises(ValueError, match="all equal"):
+        twin_distance(np.ones((5, 3)), truth, truth)
+    with pytest.raises(ValueError, match="shape"):
+        twin_distance(np.ones(3), truth, truth)

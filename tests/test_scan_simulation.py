@@ -118,3 +118,20 @@ def test_the_bundled_model_registers_a_scan_pair_at_a_half_turn(shared_data):
     error = rotation_error_deg(result.rotation, half_turn.as_matrix())
     assert result.success <= (error < 5.0), "a wrong pose flagged a success"
     assert error < 5.0, f"rotation error {error:.1f} deg at a half turn"
+
+
+def test_the_complete_shape_placed_by_shape_to_source_lies_under_the_source_scan(shape):
+    # What the symmetry-twin measure rests on (benchmarks/scan_pairs.py): the dense shape moved
+    # by shape_to_source is where the source scan was taken, so every scanned point (strays and
+    # box outliers aside) lies within the ray noise of it; the shape left unplaced does not.
+    from pykdtree.kdtree import KDTree
+
+    points, normals = shape
+    pair = make_scan_pair(points, normals, np.random.default_rng(5), points_per_cloud=None)
+    placement = pair.shape_to_source
+    assert placement.shape == (4, 4) and np.allclose(placement[:3, :3] @ placement[:3, :3].T, np.eye(3))
+    placed = points @ placement[:3, :3].T + placement[:3, 3]
+    distance, _ = KDTree(placed).query(pair.source, k=1)
+    assert np.median(distance) < 0.02
+    unplaced, _ = KDTree(points).query(pair.source, k=1)
+    assert np.median(unplaced) > 0.1
