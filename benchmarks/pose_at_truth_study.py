@@ -32,8 +32,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
-
 from common import RESULTS, command_line, machine_info, write_report  # noqa: E402
 from coarse_refit_study import is_right  # noqa: E402
 from scan_pairs import protocol_pairs  # noqa: E402
