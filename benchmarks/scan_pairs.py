@@ -283,7 +283,7 @@ def main(argv=None) -> int:
             "Twin distance: the mean two-sided closest-point distance between the complete dense shape (10,000 "
             "points) moved by the estimate and by the truth, over the shape's radius (`logdesc_rt.metrics."
             f"twin_distance`). A miss with a twin distance below {TWIN_DISTANCE:g} puts the whole object where the "
-            "truth puts it, up to a symmetry of the shape (a bottle turned about its axis, a bench by a half-turn): "
+            "truth puts it, up to a symmetry of the shape (a bottle turned about its axis, a bathtub by a half-turn): "
             "geometry alone cannot tell it from the truth. Reported beside the strict success rate, never instead "
             "of it; the rule was written before its figures (`benchmarks/results/symmetry_twins/README.md`).",
             "",
