@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 from .config import NormalizationConfig
 from .metrics import IGNORED
 from .normalization import PairNormalization
+from .sampling import farthest_point_sampling, working_subset
 
 PAPER_PROTOCOLS: tuple[str, ...] = ("clean", "noisy", "partial")
 RESAMPLED_PROTOCOLS: tuple[str, ...] = ("resampled", "resampled_partial")
@@ -179,6 +180,16 @@ def resampled_correspondences(
     return gt_match_src, gt_match_tgt
 
 
+def _exact_working_subset(points: np.ndarray, count: int, normalization_config: NormalizationConfig) -> np.ndarray:
+    """The runtime's working subset of ``points``, exactly ``count`` of them (training stacks
+    clouds of one size): farthest-point sampling of the whole cloud when setting strays aside
+    leaves fewer."""
+    keep = working_subset(points, count, "fps", normalization_config)
+    if len(keep) == count:
+        return keep
+    return np.sort(farthest_point_sampling(points, count)).astype(np.int64)
+
+
 def make_pair(
     shape_points,
     protocol: str,
@@ -189,6 +200,7 @@ def make_pair(
     normalization_config: NormalizationConfig = NormalizationConfig(),
     any_orientation: bool = False,
     any_relative_rotation: bool = False,
+    working_size: int | None = None,
 ) -> Pair:
     """Build one registration pair from a shape (PRNet / LoGDesc protocol).
 
@@ -221,6 +233,12 @@ def make_pair(
             random rotation, so the relative rotation is of any size, as between scans taken
             from anywhere (the paper's motion stays at most 45 degrees per axis). Labels are
             unchanged; ``euler_zyx_deg`` still gives the drawn angles, before this turn.
+        working_size: cut each cloud larger than this to exactly this many points with the
+            runtime's working subset (:func:`~logdesc_rt.sampling.working_subset`: stray points
+            set aside, farthest-point sampling), each cloud on its own, as ``register`` does;
+            the labels then come from geometry (:func:`resampled_correspondences` on the
+            noise-free positions), since a point's twin may not survive the other cloud's cut.
+            None: no cut, labels by twin index.
 
     Returns:
         :class:`Pair`. Clean and noisy pairs have N = M = n points, partial ones
@@ -273,7 +291,19 @@ def make_pair(
         source, source_origin = source[source_keep], source_origin[source_keep]
         target, target_origin = target[target_keep], target_origin[target_keep]
 
-    if resampled:
+    cut = False
+    if working_size is not None:
+        for name in ("source", "target"):
+            cloud, origin = (source, source_origin) if name == "source" else (target, target_origin)
+            if len(cloud) > working_size:
+                keep = _exact_working_subset(cloud, working_size, normalization_config)
+                cloud, origin, cut = cloud[keep], origin[keep], True
+            if name == "source":
+                source, source_origin = cloud, origin
+            else:
+                target, target_origin = cloud, origin
+
+    if resampled or cut:
         gt_match_src, gt_match_tgt = resampled_correspondences(base, source_origin, target_origin)
     else:  # by origin index: position of each base point in either cloud (or -1)
         target_position = np.full(count, -1, dtype=np.int64)

@@ -82,7 +82,9 @@ def load_model(path, device="cpu"):
     info = CheckpointInfo(
         geometry=geometry,
         normalization=normalization,
-        points_per_cloud=int(train_args.get("points_per_cloud") or DEFAULT_WORKING_SIZE),
+        points_per_cloud=int(
+            train_args.get("working_size") or train_args.get("points_per_cloud") or DEFAULT_WORKING_SIZE
+        ),
         provenance=provenance,
     )
     return model_from_checkpoint(checkpoint, device), info

@@ -513,6 +513,7 @@ class PairDataset(_TorchDataset):
         any_relative_rotation: bool = False,
         dense: DenseShapes | None = None,
         scan_shape_weighting: str = "uniform",
+        working_size: int | None = None,
     ) -> None:
         if scan_shape_weighting not in SCAN_SHAPE_WEIGHTINGS:
             raise ValueError(f"scan shape weighting {scan_shape_weighting!r}: expected one of {SCAN_SHAPE_WEIGHTINGS}")
@@ -533,6 +534,9 @@ class PairDataset(_TorchDataset):
         # ("uniform"), or drawn with DenseShapes.draw_weights (``scan_shape_weighting``).
         self.dense = dense
         self.scan_shape_weighting = scan_shape_weighting
+        # Shape pairs are cut to this many points per cloud as the runtime cuts them (None: the
+        # protocol's own sizes); scan pairs take their size from their key.
+        self.working_size = working_size
         self._scan_shape_cumulative = (
             None if dense is None or scan_shape_weighting == "uniform"
             else np.cumsum(dense.draw_weights(scan_shape_weighting))
@@ -554,6 +558,7 @@ class PairDataset(_TorchDataset):
             normalization_config=self.normalization_config,
             any_orientation=self.any_orientation,
             any_relative_rotation=self.any_relative_rotation,
+            working_size=self.working_size,
         )
 
     def scan_shape(self, key: PairKey, words: list[int]) -> int:

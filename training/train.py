@@ -175,6 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "validation set when its training mix changes")
     data.add_argument("--points-per-cloud", type=int, default=SOURCE_POINTS,
                       help="source points per pair (1024 = paper; partial keeps 75%%)")
+    data.add_argument("--working-size", type=int, default=None,
+                      help="cut every shape pair's clouds to at most this many points with the runtime's working "
+                           "subset (labels from geometry); the model's working size at run time")
     data.add_argument("--scan-points-per-cloud", type=int, default=None,
                       help="points per cloud of 'scan' pairs (default --points-per-cloud)")
     data.add_argument("--scan-shape-weighting", default="uniform", choices=SCAN_SHAPE_WEIGHTINGS,
@@ -634,6 +637,7 @@ def _loaders(args, geometry: GeometryConfig, device, workers: int, start_step: i
             geometry_on_device=bool(args.geometry_on_device), dense=dense[name],
             # getattr: a hand-built Namespace (tests) may predate the flag.
             scan_shape_weighting=getattr(args, "scan_shape_weighting", "uniform") if name == "train" else "uniform",
+            working_size=getattr(args, "working_size", None),
         )
         for name, split in (("train", shapes.train), ("val", shapes.val))
     }
