@@ -444,28 +444,6 @@ def test_the_learned_methods_run_the_model_folder_they_are_given(tmp_path):
         methods.MethodRunner(["logdesc_fsr"], model_dir=candidate)
 
 
-def test_descriptor_only_matches_are_mutual_nearest_neighbours():
-    """benchmarks/matcher_study.py reads matches off the descriptors alone: i <-> j only when
-    each is the other's most similar; the cosine is the confidence."""
-    import matcher_study
-
-    rng = np.random.default_rng(0)
-    target = rng.normal(size=(40, 8))
-    target /= np.linalg.norm(target, axis=1, keepdims=True)
-    order = rng.permutation(40)
-    source = target[order] + rng.normal(scale=1e-3, size=(40, 8))
-    source /= np.linalg.norm(source, axis=1, keepdims=True)
-    source[0] = source[1]  # two sources share one best target: at most one of them is mutual
-    matches = matcher_study.descriptor_matches(source, target)
-    shared = [j for i, j in zip(matches.source_index, matches.target_index, strict=True) if i in (0, 1)]
-    assert shared == [order[1]]  # one of the two twins, with the twins' target
-    for i, j in zip(matches.source_index, matches.target_index, strict=True):
-        assert np.argmax(source @ target[j]) == i and np.argmax(target @ source[i]) == j
-        if i > 1:
-            assert j == order[i]
-    assert np.all((matches.confidence > 0.99) & (matches.confidence <= 1.0))
-
-
 def test_a_runner_with_other_parameters_shares_the_network():
     """with_parameters: the same methods, the other Open3D parameters, one network loaded once."""
     runner = methods.MethodRunner(("logdesc_fsr", "fpfh_ransac"))
