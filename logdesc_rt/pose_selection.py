@@ -7,7 +7,7 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
     each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
     re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP ->
-    fitness / inlier RMSE on the full clouds -> the success flag.
+    fitness / inlier RMSE against the full target (a bounded seeded source subset) -> the success flag.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from .pose.candidates import unexplained_candidate_poses
 from .pose.svd import refine_on_inliers, solve_rigid_batch, to_homogeneous, transformation_inliers
 from .refinement import estimate_normals, plane_fit_step, refine_pose
 from .results import RegistrationResult
+from .sampling import seeded_subset
 from .threads import one_thread_per_caller
 from .timing import timed
 from .verification import UNEXPLAINED_PREFIX, Hypothesis, PoseVerifier, VerificationResult
@@ -96,7 +97,7 @@ def register_matched(
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
         source_matched, target_matched = pair.source_points[correspondences[:, 0]], pair.target_points[correspondences[:, 1]]
-        with timed(timings, "pose"):  # the returned pose is estimated here too
+        with timed(timings, "pose"), one_thread_per_caller():  # the returned pose is estimated here too
             pose = coarse_pose(
                 chosen, source_matched, target_matched, pair.matches.confidence,
                 pair.target_points[pair.target_index], config.verification,
@@ -244,10 +245,14 @@ def _judged_result(
     transformation: np.ndarray, **outcome,
 ) -> RegistrationResult:
     """The result of ``pair`` with its returned ``transformation``: fitness and inlier RMSE on
-    the full clouds at ``distance``, the total time, and what every result says of the pair;
+    the full target at ``distance`` (over at most ``evaluation_points`` seeded source points), the total time, and what every result says of the pair;
     ``outcome`` holds the rest (estimator, refinement, the flag and its reason)."""
-    with timed(timings, "evaluation"):
-        evaluation = evaluate_registration(pair.source_points, pair.target_points, distance, transformation)
+    # One thread: a bounded query, which OpenMP's start-up and spin-waits on a small machine slow.
+    with timed(timings, "evaluation"), one_thread_per_caller():
+        scored = seeded_subset(
+            len(pair.source_points), config.refinement.evaluation_points, np.random.default_rng(config.refinement.seed)
+        )
+        evaluation = evaluate_registration(pair.source_points[scored], pair.target_points, distance, transformation)
     timings["total"] = sum(timings.values())
     return RegistrationResult(
         transformation=transformation,
@@ -256,6 +261,7 @@ def _judged_result(
         fitness=evaluation.fitness,
         inlier_rmse=evaluation.inlier_rmse,
         max_correspondence_distance=distance,
+        fitness_points=len(scored),
         subsampled=pair.subsampled,
         source_points_used=len(pair.source_index),
         target_points_used=len(pair.target_index),

@@ -10,7 +10,8 @@
          back exactly to the user frame (plus the user's initial guess, if any)
       -> verification on the full clouds: the best few candidates get a short ICP, each is
          scored, the best kept; a calibrated confidence and the success flag
-      -> optional ICP refinement on the full clouds; fitness / inlier RMSE on the full clouds
+      -> optional ICP refinement on the full clouds; fitness / inlier RMSE against the full
+         target, over a bounded seeded subset of the source
 
 Every parameter of these stages is in one :class:`~logdesc_rt.config.RuntimeConfig`.
 

@@ -29,9 +29,12 @@ class RegistrationResult:
             clouds as given (before any subsampling): the network's mutual matches.
         confidences: (K,) float64 match probabilities from Sinkhorn, in (0, 1].
         fitness: share of source points with a target point within
-            ``max_correspondence_distance`` after the transform (full clouds).
+            ``max_correspondence_distance`` after the transform, over ``fitness_points``
+            source points (all of them up to ``RefinementConfig.evaluation_points``, else a
+            seeded uniform subset of that many), each against the whole target.
         inlier_rmse: RMS distance of those point pairs, user units; NaN when there are none
             (``None`` in :meth:`to_dict`).
+        fitness_points: how many source points ``fitness`` and ``inlier_rmse`` were computed on.
         max_correspondence_distance: the distance used for fitness and ICP, user units.
         pose_estimator: the estimator whose hypothesis was kept (with ``estimator="auto"``,
             its pose is returned re-fitted on the matches it explains,
@@ -78,6 +81,7 @@ class RegistrationResult:
     verification: VerificationResult | None = None
     config: RuntimeConfig | None = None
     reason: str | None = None
+    fitness_points: int = 0
 
     @property
     def rotation(self) -> np.ndarray:
@@ -123,6 +127,7 @@ class RegistrationResult:
             "confidence": self.confidence,
             "reason": self.reason,
             "fitness": self.fitness,
+            "fitness_points": self.fitness_points,
             "inlier_rmse": _finite_or_none(self.inlier_rmse),
             "max_correspondence_distance": self.max_correspondence_distance,
             "correspondence_count": int(len(self.correspondences)),

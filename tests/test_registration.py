@@ -276,3 +276,32 @@ def test_the_networks_flush_denormals_on_their_own_thread_only():
     assert caller_flushes == "False", "the caller's thread lost IEEE denormals"
     assert network_flushes == "True", "the network thread does not flush denormals (the slow path)"
     assert float(difference) == 0.0
+
+
+def test_fitness_is_computed_on_a_bounded_seeded_subset_of_the_source(registrar, demo_pair):
+    """Every source point is scored up to evaluation_points; beyond, a seeded subset of that many,
+    each against the whole target, and the result says how many: the same figures as
+    evaluate_registration on that subset, and the same again for the same seed."""
+    from logdesc_rt.pose import evaluate_registration
+    from logdesc_rt.sampling import seeded_subset
+
+    whole = registrar.register(demo_pair.source, demo_pair.target)
+    assert whole.fitness_points == len(demo_pair.source)
+    expected = evaluate_registration(
+        demo_pair.source, demo_pair.target, whole.max_correspondence_distance, whole.transformation
+    )
+    assert whole.fitness == expected.fitness
+
+    bounded_config = {"refinement": {"evaluation_points": 100}}
+    bounded = registrar.register(demo_pair.source, demo_pair.target, config=bounded_config)
+    assert bounded.fitness_points == 100
+    assert np.array_equal(bounded.transformation, whole.transformation)
+    subset = seeded_subset(len(demo_pair.source), 100, np.random.default_rng(bounded.config.refinement.seed))
+    on_subset = evaluate_registration(
+        demo_pair.source[subset], demo_pair.target, bounded.max_correspondence_distance, bounded.transformation
+    )
+    assert bounded.fitness == on_subset.fitness
+    assert bounded.inlier_rmse == on_subset.inlier_rmse
+    again = registrar.register(demo_pair.source, demo_pair.target, config=bounded_config)
+    assert again.fitness == bounded.fitness
+    assert bounded.to_dict()["fitness_points"] == 100
