@@ -110,9 +110,9 @@ class GeometryConfig(_DictMixin):
 
     @classmethod
     def from_stored(cls, values: dict[str, Any]) -> "GeometryConfig":
-        """A geometry as a checkpoint or a manifest stored it. Files written before the edge
-        layouts existed (no ``edge_layout`` key: the paper-architecture small-h100 models) hold
-        the paper's geometry, not today's defaults."""
+        """A geometry as a checkpoint or a manifest stored it. Files without an
+        ``edge_layout`` key (the paper architecture) hold the paper's geometry, not the
+        defaults."""
         if "edge_layout" not in values:
             values = {"edge_layout": "paper", "normals": "umbrella", **values}
         return cls.from_dict(values)
@@ -133,7 +133,7 @@ class NormalizationConfig(_DictMixin):
         stray_neighbours: k of the stray-point test (:mod:`.outliers`): a point is stray when
             its k-th nearest neighbour is far; clumps of fewer than k points count as stray.
         stray_ratio: ... farther than this many times the cloud's median k-th neighbour
-            distance. 0 turns the test off (every point counts, as before v4).
+            distance. 0 turns the test off (every point counts).
     """
 
     target_radius: float = 1.0
@@ -156,12 +156,12 @@ class MatchingConfig(_DictMixin):
     Attributes:
         sinkhorn_iterations: 50 in the official code.
         match_threshold: a mutual best match is kept if its assignment probability exceeds this.
-        dustbin_in_mutual_test: False (default, from v4): each point's best real partner, kept
+        dustbin_in_mutual_test: False (default): each point's best real partner, kept
             when it is mutual, however much mass the dustbin holds (the dustbin still shapes the
             plan); on scan pairs, where a trained matcher sends most points to the dustbin, this
             keeps about ten times the matches at a similar inlier share, for the robust
-            estimators and verification to sort (``training/results/v4_cycle2/README.md``).
-            True (the paper's reading, and every model stored before the option, v3 included):
+            estimators and verification to sort.
+            True (the paper's reading; models stored without the key):
             a point whose largest entry is its dustbin is unmatched. The success flag is
             calibrated for the model's own setting: a model switched by hand keeps a
             calibration fitted on other match counts.
@@ -179,8 +179,8 @@ class MatchingConfig(_DictMixin):
 
     @classmethod
     def from_stored(cls, values: dict[str, Any]) -> "MatchingConfig":
-        """A matching as a manifest or checkpoint stored it. Files written before the
-        ``dustbin_in_mutual_test`` option (v3 and earlier) matched with the paper's reading."""
+        """A matching as a manifest or checkpoint stored it. Files without the
+        ``dustbin_in_mutual_test`` key match with the paper's reading."""
         return cls.from_dict({"dustbin_in_mutual_test": True, **values})
 
 
@@ -242,13 +242,10 @@ class VerificationConfig(_DictMixin):
         turn_over_spin: the second look also proposes the leading pose with its source spun
             half a turn about its least principal axis (the normal of that plane), screened
             alone and refined: a flip in the plane, which neither the turn-overs nor an ICP
-            reaches. Off: on 360 validation scan pairs it added a right hypothesis to 4 and
-            lost the flag's choice on others (``benchmarks/results/spin``).
+            reaches. Off by default (``docs/decisions.md``).
         second_consensus: the estimators (of CANDIDATE_ESTIMATORS) the second look runs on the
             matches the leading pose leaves unexplained (the true pose of a symmetric object
-            whose mirrored twin matches outvoted it); empty: none. RANSAC alone found 33 of
-            the 40 right poses that all five found on the calibration pairs, at a fifth of
-            their cost.
+            whose mirrored twin matches outvoted it); empty: none.
         descriptor_consensus: the estimators (of CANDIDATE_ESTIMATORS) also run on the
             descriptors' own mutual nearest neighbours (before the matcher's transformer; a
             pair matched outside the runtime, without descriptors, has none); their
@@ -257,14 +254,10 @@ class VerificationConfig(_DictMixin):
             (:func:`logdesc_rt.pose_selection.coarse_pose`) is the least-squares fit of the
             learned matches the chosen hypothesis' verified pose explains within this many of
             the target's working-subset point spacings: a pose from matches, whose inliers the
-            verified pose chose; 0: the estimator's own pose. 2 was chosen on 450
-            validation pairs among 0, 1, 1.5, 2 and 3 (``benchmarks/results/coarse_refit``).
+            verified pose chose; 0: the estimator's own pose.
         refit_plane_steps: then this many Gauss-Newton steps of the same matches' point-to-
             plane fit (independent samples of a surface pair a point with a neighbour of its
-            twin: the error along the surface is sampling); 0: none. 3 steps with
-            ``refit_point_weight`` 0.1 turned 268 of 360 validation scan pairs right without ICP
-            into 277, and lost no other validation group a pair
-            (``benchmarks/results/plane_refit``).
+            twin: the error along the surface is sampling); 0: none.
         refit_point_weight: the point-to-point term's weight in those steps, relative to the
             point-to-plane term (it holds the directions a flat patch leaves free).
         weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
@@ -293,7 +286,7 @@ class VerificationConfig(_DictMixin):
     refit_plane_steps: int = 3
     refit_point_weight: float = 0.1
     # A calibration belongs to a model: the one in effect is the model manifest's
-    # ("runtime" -> "verification"). These defaults are the shipped model's (v4; held equal to
+    # ("runtime" -> "verification"). These defaults are the bundled model's (held equal to
     # its manifest by tests/test_verification.py), the fit of benchmarks/calibrate_success.py
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
@@ -502,10 +495,7 @@ class SubsamplingConfig(_DictMixin):
     Attributes:
         max_points: working size per cloud; 0 leaves it to the model: its manifest's
             ``runtime.subsampling.max_points``, else the size it was exported at (1024 for the
-            bundled model; 768, the size of its training scans and crops, is 1.3x faster end
-            to end but its success flag without ICP fell below 95 % precision on validation
-            scans, ``benchmarks/results/working_size_768``). Larger clouds are subsampled to
-            it; memory grows with its square.
+            bundled model). Larger clouds are subsampled to it; memory grows with its square.
         method: "fps" (farthest-point sampling) or "voxel" (a grid sized to keep about
             ``max_points``, then farthest-point sampling to the exact count).
     """

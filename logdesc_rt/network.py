@@ -122,10 +122,10 @@ class ModelManifest:
         """The model's runtime defaults: ``runtime`` over the code's defaults (not yet
         resolved: ``Registrar`` fills in the working size and the model's matching).
 
-        A calibration stored without its candidate set (v3 and older) was fitted with the
-        four estimators of its day, and keeps them: its ``agreement`` feature counts among them.
-        One stored without the second look's settings (before session 16) was fitted without
-        it, and runs without it: its ``margin`` feature never met a turn-over as a rival. One
+        A calibration stored without its candidate set was fitted with the four estimators of
+        ``LEGACY_CANDIDATES``, and keeps them: its ``agreement`` feature counts among them.
+        One stored without the second look's settings was fitted without it, and runs
+        without it: its ``margin`` feature never met a turn-over as a rival. One
         stored without ``descriptor_consensus`` runs without the descriptors' candidates, and
         one without ``refit_spacings`` returns the estimator's own pose without ICP, and one
         without ``refit_plane_steps`` returns the re-fit without its point-to-plane steps."""
@@ -140,14 +140,13 @@ class ModelManifest:
 
 
 LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
-"""The candidate estimators of calibrations stored without a candidate set (before "core")."""
+"""The candidate estimators of calibrations stored without a candidate set (no "core")."""
 LEGACY_VERIFICATION_OFF = {
     "turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0,
     "refit_plane_steps": 0, "turn_over_spin": False,
 }
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
-filled in alone; the second look before session 16, the descriptors' candidates before 17,
-the re-fitted pose without ICP before 18, its point-to-plane steps and the spin before 21)."""
+filled in alone)."""
 
 
 def read_manifest(model_dir: Path) -> ModelManifest:
@@ -227,10 +226,8 @@ class OnnxNetwork:
         options.enable_mem_pattern = False
         # Denormal floats. Attention logits ~90 below their row's maximum give softmax terms in
         # float32's denormal range, which x86 cores process ~100x slower; v4's distance-biased
-        # heads have ~5 % such entries (one attention node: 27 ms with them, 6 ms flushed). At
-        # 1024 points, alternating processes, the descriptors of both clouds took 155 -> 93 ms
-        # and the matcher 110 -> 99 ms once flushed (benchmarks/results/runtime_ab.md). Flushing
-        # them to zero (FTZ/DAZ) changes no value above 1e-38. onnxruntime sets the mode on each
+        # heads have ~5 % such entries (one attention node: 27 ms with them, 6 ms flushed).
+        # Flushing them to zero (FTZ/DAZ) changes no value above 1e-38. onnxruntime sets the mode on each
         # session's pool threads, and once per process (the first session only) on the thread
         # that creates it; so every session is created and run on one thread of this module's
         # own (network_thread), and the caller's threads keep IEEE denormals.

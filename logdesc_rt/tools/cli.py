@@ -41,8 +41,8 @@ EXIT_ERROR = 2
 EXIT_NOT_SUCCESS = 3
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 ESTIMATOR_HELP = (
-    "auto (default): every candidate pose of the model's set (FSR, RANSAC, SVD, top-k, and for v4 the "
-    "consistency core) is verified on the full clouds and the best kept; fsr: the paper's "
+    "auto (default): every candidate pose of the model's set (FSR, RANSAC, SVD, top-k and the "
+    "consistency core for the bundled model) is verified on the full clouds and the best kept; fsr: the paper's "
     "farthest-sampling estimator; svd: confidence-weighted least squares on all matches; ransac: 3-point "
     "RANSAC; core: SVD on the largest mutually consistent set of matches. The chosen pose is always verified."
 )
