@@ -25,13 +25,14 @@ then its own, and no thread pool or allocator cache carries over between measure
 What every number means. Times are milliseconds, "median / p90" over ``--repeats``
 calls; each child makes one untimed warm-up call first.
 
-1. Stages (onnxruntime): ``Registrar(threads=T, max_points=N).register(source,
-   target)``; max_points = N, so nothing is subsampled. From its ``timings``:
+1. Stages (onnxruntime): ``Registrar(threads=T).register(source, target)`` at the model's
+   working size (clouds larger than it are subsampled, as for any user). From its ``timings``:
    geometry = ``compute_geometry`` of both clouds (NumPy/SciPy/pykdtree);
    descriptor net = the descriptor ONNX graph on both clouds; matcher net = the
    matcher graph (normal-encoder transformer + scores) on the pair; Sinkhorn + mutual
-   = log-Sinkhorn with the learned dustbin, then mutual matches; pose = FSR; other =
-   load/validation + subsampling (a no-op here) + the fitness evaluation; end to end
+   = log-Sinkhorn with the learned dustbin, then mutual matches; pose = the candidate
+   poses and the returned pose's re-fit; verification = scoring them on the clouds; other =
+   load/validation + subsampling + the fitness evaluation; end to end
    = ``timings["total"]``, the sum of all of them; wall = the ``register`` call timed
    from outside (adds the pair normalisation and building the result). The mutual
    match count and the rotation error (degrees, against the true motion) of the last
@@ -52,8 +53,9 @@ calls; each child makes one untimed warm-up call first.
    included); ORT network and torch network = the bare networks at N, as in 2 (the
    torch child's peak is taken before it loads onnxruntime for max abs diff). above
    baseline = peak - that backend's baseline: what the work at N costs.
-4. Open3D peers: ``benchmarks/methods.MethodRunner(("fpfh_ransac", "fpfh_fgr"))`` with
-   the parameters tuned on validation pairs (``FpfhParameters.tuned()``); each time
+4. Peers: ``benchmarks/methods.MethodRunner(("fpfh_ransac", "fpfh_fgr", "kiss_matcher"))``
+   with the parameters tuned on validation pairs (``FpfhParameters.tuned()``; KISS-Matcher's
+   voxel is the tuned Open3D voxel); each time
    includes the normals and FPFH of both clouds, as in the accuracy benchmark. ratio =
    its median / logdesc-rt's median wall end to end (> 1: logdesc-rt is faster).
    Open3D's RANSAC and FPFH are multithreaded (OpenMP), on the same T threads.
@@ -102,7 +104,7 @@ from logdesc_rt.synthetic import (  # noqa: E402
 STEM = "latency"
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
 BUNNY_SCAN = DATA_ROOT / "stanford_bunny" / "data" / "bun000.ply"
-OPEN3D_PEERS = ("fpfh_ransac", "fpfh_fgr")
+OPEN3D_PEERS = ("fpfh_ransac", "fpfh_fgr", "kiss_matcher")
 # Pinned to --threads in every child, so that every library uses the same T threads.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 RESULT_MARKER = "LATENCY_RESULT "  # starts the child's one line of JSON on stdout
@@ -121,7 +123,7 @@ STAGE_COLUMNS = (
     ("descriptors", "descriptor net"),
     ("matcher", "matcher net"),
     ("matching", "Sinkhorn + mutual (float32)"),
-    ("pose", "pose (FSR)"),
+    ("pose", "pose (candidates, re-fit)"),
     ("verification", "verification"),
     ("other", "other"),
     ("total", "end to end"),
@@ -132,6 +134,42 @@ NETWORK_PARTS = ("descriptors", "matcher", "both")
 
 
 # ------------------------------------------------------------------------ helpers
+def network_flops(config: dict, source_points: int, target_points: int, neighbours: int) -> float:
+    """Floating-point operations (2 per multiply-add) of the invariant network on one pair.
+
+    Counted from the model config (``manifest.json`` "model_config"): the edge convolutions
+    (per point and neighbour), the geometric self-attention layers of the descriptor and of the
+    matcher (Q, K, V and merge projections, the update MLP, Q K^T over head channels plus the
+    26 geometric channels per head, and the weighted sum of V), the bidirectional cross layers
+    (both directions), the final projections and the N x M score product. Norms, softmax and
+    activations are left out (a few per cent).
+    """
+    geometric_channels = 5 + 6 + 15  # distance, (n.n)^2 and (n.n)^4 channels per head
+
+    def multiply_adds_self(width: int, heads: int, count: int) -> float:
+        per_point = 4 * width * width + (2 * width) * (2 * width) + (2 * width) * width + width * 2 * heads
+        logits = count * count * (width + heads * geometric_channels)
+        return count * per_point + logits + count * count * width
+
+    def multiply_adds_cross(width: int, first: int, second: int) -> float:
+        projections = (first + second) * (2 * width * width + width * width)
+        updates = (first + second) * ((2 * width) * (2 * width) + (2 * width) * width)
+        return projections + updates + 2 * (2 * first * second * width)
+
+    channels = [config["edge_channels"], *config["descriptor_channels"]]
+    edge = neighbours * sum(a * b for a, b in zip(channels[:-1], channels[1:]))
+    width, dim = config["descriptor_channels"][-1], config["descriptor_dim"]
+    total = 0.0
+    for count in (source_points, target_points):
+        total += count * edge + count * width * dim
+        total += config["descriptor_attention_layers"] * multiply_adds_self(width, config["descriptor_heads"], count)
+        total += config["transformer_layers"] * multiply_adds_self(dim, config["transformer_heads"], count)
+        total += count * dim * dim  # the matcher's final projection
+    total += config["transformer_layers"] * multiply_adds_cross(dim, source_points, target_points)
+    total += source_points * target_points * dim  # the scores
+    return 2.0 * total
+
+
 def summary_ms(seconds: list[float]) -> dict:
     """Median and 90th percentile (ms) of timings given in seconds."""
     values = 1e3 * np.asarray(seconds, dtype=np.float64)
@@ -252,6 +290,24 @@ def bunny_pairs(sizes: list[int], seed: int) -> tuple[dict[int, dict], int]:
     return pairs, len(scan)
 
 
+REAL_PAIR = "bun000-bun045"  # the key of the real scan pair among the sizes
+REAL_PAIR_POINTS = 2048
+
+
+def real_scan_pair(points: int = REAL_PAIR_POINTS) -> dict:
+    """The real Stanford Bunny scans bun000 -> bun045 as a user has them (metres, each in its
+    scanner's frame), each farthest-point sampled to ``points``; truth from ``bun.conf``."""
+    from bunny import fps_subset, load_scans, relative_pose
+
+    scans = {scan.name: scan for scan in load_scans()}
+    source, target = scans["bun000.ply"], scans["bun045.ply"]
+    return {
+        "source": fps_subset(source.points, points),
+        "target": fps_subset(target.points, points),
+        "T_gt": relative_pose(source, target),
+    }
+
+
 def _with_noise(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """(N, 3) points + N(0, sigma^2) per coordinate, clipped as the "noisy" protocol."""
     noise = rng.normal(0.0, NOISE_SIGMA, size=points.shape)
@@ -312,7 +368,7 @@ def worker_baseline_onnxruntime(args) -> dict:
     """Import the runtime and load the model (both sessions); run nothing."""
     from logdesc_rt import Registrar
 
-    Registrar(args.model_dir, threads=args.threads, max_points=args.size)
+    Registrar(args.model_dir, threads=args.threads)
     return {"peak": peak_rss_kib()}
 
 
@@ -323,14 +379,12 @@ def worker_onnxruntime(args) -> dict:
 
     data = load_inputs(args.inputs, args.size)
     start = time.perf_counter()
-    registrar = Registrar(args.model_dir, threads=args.threads, max_points=args.size)
+    registrar = Registrar(args.model_dir, threads=args.threads)  # the model's own working size
     startup = time.perf_counter() - start
 
     start = time.perf_counter()  # the warm-up call, timed as the first call
     result = registrar.register(data["source"], data["target"], seed=POSE_SEED)
     first_call = time.perf_counter() - start
-    if min(result.source_points_used, result.target_points_used) < 0.99 * args.size:  # strays may go
-        raise RuntimeError(f"N={args.size}: subsampled although max_points = N")
 
     stages: dict[str, list[float]] = {}
     for _ in range(args.repeats):
@@ -342,7 +396,16 @@ def worker_onnxruntime(args) -> dict:
     other = zip(*(stages[stage] for stage in OTHER_STAGES), strict=True)
     stages["other"] = [sum(calls) for calls in other]
     pose, truth = result.transformation, data["T_gt"]
+    config = registrar.network.manifest.model_config
+    k = registrar.network.manifest.geometry.umbrella_neighbours
+    flops = network_flops(config, result.source_points_used, result.target_points_used, k)
+    network_seconds = np.median(np.add(stages["descriptors"], stages["matcher"]))
     return {
+        "working_size": registrar.max_points,
+        "points_used": [result.source_points_used, result.target_points_used],
+        "network_gflop": flops / 1e9,
+        "network_gflop_per_s": flops / 1e9 / network_seconds,
+        "success": bool(result.success),
         "stages_s": stages,
         "stages": {stage: summary_ms(values) for stage, values in stages.items()},
         "matches": len(result.correspondences),
@@ -488,9 +551,15 @@ def worker_open3d(args) -> dict:
 
     data = load_inputs(args.inputs, args.size)
     parameters = FpfhParameters.tuned()
-    runner = MethodRunner(OPEN3D_PEERS, parameters=parameters)
+    try:
+        import kiss_matcher  # noqa: F401 (the bench extra)
+
+        peers = OPEN3D_PEERS
+    except ImportError:
+        peers = tuple(name for name in OPEN3D_PEERS if name != "kiss_matcher")
+    runner = MethodRunner(peers, parameters=parameters)
     runner.run(data["source"], data["target"], seed=POSE_SEED)  # warm-up
-    seconds: dict[str, list[float]] = {name: [] for name in OPEN3D_PEERS}
+    seconds: dict[str, list[float]] = {name: [] for name in peers}
     for _ in range(args.repeats):
         results = runner.run(data["source"], data["target"], seed=POSE_SEED)
         for name, result in results.items():
@@ -564,12 +633,15 @@ def header(titles: list[str]) -> list[str]:
 
 
 def stages_table(results: dict[int, dict]) -> list[str]:
-    titles = [title for _, title in STAGE_COLUMNS] + ["matches", "rot. err. deg"]
+    titles = ["points used"] + [title for _, title in STAGE_COLUMNS]
+    titles += ["matches", "rot. err. deg", "success", "network GFLOP", "network GFLOP/s"]
     lines = header(titles)
     for size, result in results.items():
         run = result["onnxruntime"]
-        cells = [cell(run["stages"].get(key)) for key, _ in STAGE_COLUMNS]
-        cells += [str(run["matches"]), f"{run['rotation_error_deg']:.2f}"]
+        cells = [" x ".join(str(n) for n in run["points_used"])]
+        cells += [cell(run["stages"].get(key)) for key, _ in STAGE_COLUMNS]
+        cells += [str(run["matches"]), f"{run['rotation_error_deg']:.2f}", str(run["success"])]
+        cells += [f"{run['network_gflop']:.2f}", f"{run['network_gflop_per_s']:.0f}"]
         lines.append(row(size, cells))
     return lines
 
@@ -624,16 +696,16 @@ def memory_table(results: dict[int, dict], baselines: dict[str, dict]) -> list[s
 
 
 def open3d_table(results: dict[int, dict]) -> list[str]:
-    titles = ["logdesc-rt wall"]
-    for title in ("FPFH + RANSAC", "FPFH + FGR"):
+    titles = ["logdesc-rt wall", "rot. err. deg"]
+    for title in ("FPFH + RANSAC", "FPFH + FGR", "KISS-Matcher"):
         titles += [title, "ratio", "rot. err. deg"]
     lines = header(titles + ["Open3D child peak MiB"])
     for size, result in results.items():
         logdesc = result["onnxruntime"]["stages"]["wall"]
         peers = result.get("open3d")
-        cells = [cell(logdesc)]
+        cells = [cell(logdesc), f"{result['onnxruntime']['rotation_error_deg']:.2f}"]
         for name in OPEN3D_PEERS:
-            if not peers:
+            if not peers or name not in peers["methods"]:
                 cells += ["", "", ""]
                 continue
             summary = peers["methods"][name]
@@ -748,7 +820,7 @@ def plot_latency(results: dict[int, dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    sizes = list(results)
+    sizes = [size for size in results if isinstance(size, int)]
     figure, axis = plt.subplots(figsize=(10, 5.2))
 
     def plot(label: str, summaries: list[dict | None], **style) -> None:
@@ -777,6 +849,7 @@ def plot_latency(results: dict[int, dict], path: Path) -> None:
     for name, label, colour in (
         ("fpfh_ransac", "Open3D FPFH + RANSAC", "tab:blue"),
         ("fpfh_fgr", "Open3D FPFH + FGR", "tab:cyan"),
+        ("kiss_matcher", "KISS-Matcher", "tab:red"),
     ):
         summaries = [
             (results[n].get("open3d") or {}).get("methods", {}).get(name) for n in sizes
@@ -832,13 +905,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--stem", default=STEM, help="result file names: STEM.md, STEM.json, STEM_vs_points.png")
     parser.add_argument("--no-torch", action="store_true", help="skip torch eager")
+    parser.add_argument("--no-real-pair", action="store_true",
+                        help=f"leave out the real scan pair ({REAL_PAIR}, {REAL_PAIR_POINTS} points each)")
     parser.add_argument(
         "--no-open3d", action="store_true", help="skip the Open3D peers"
     )
     parser.add_argument("--out", type=Path, default=RESULTS)
     # The child's side of the parent / child protocol (see run_child).
     parser.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
-    parser.add_argument("--size", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--size", help=argparse.SUPPRESS)  # N, or REAL_PAIR
     parser.add_argument("--inputs", type=Path, help=argparse.SUPPRESS)
     return parser
 
@@ -865,7 +940,10 @@ def describe_clouds(pose: np.ndarray, scan_points: int, seed: int) -> str:
         f"{', '.join(f'{t:.3f}' for t in pose[:3, 3])}), the same at every N; "
         f"independent Gaussian noise per cloud (sigma {NOISE_SIGMA}, clipped at "
         f"{NOISE_CLIP}) and independent permutations. The same pairs for every method "
-        "and backend; `Registrar(max_points=N)`, so nothing is subsampled."
+        "and backend; `Registrar()` at the model's working size (larger clouds are "
+        f"subsampled as `register` does). Last row: the real scans {REAL_PAIR} (metres, each in "
+        f"its scanner's frame), each farthest-point sampled to {REAL_PAIR_POINTS} points, truth "
+        "from bun.conf."
     )
 
 
@@ -893,7 +971,10 @@ def main(argv=None) -> int:
     skipped = [f"{name} (--no-{name})." for name, wanted in use.items() if not wanted]
 
     pairs, scan_points = bunny_pairs(sizes, args.seed)
-    results: dict[int, dict] = {size: {} for size in sizes}
+    if not args.no_real_pair:
+        pairs[REAL_PAIR] = real_scan_pair()
+        sizes = sizes + [REAL_PAIR]
+    results: dict = {size: {} for size in sizes}
     baselines: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="latency_") as folder:
         inputs = Path(folder) / "inputs.npz"
