@@ -8,6 +8,7 @@ Each table sits between ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->``:
 - ``results`` (README.md and docs/benchmarks.md): one row per kind of pair, success without /
   with ICP for ``register()`` and Open3D FPFH + RANSAC (KISS-Matcher when a file has it), and
   the median time per pair in the same run.
+- ``flag`` (docs/benchmarks.md): the success flag's precision and recall on the same test pairs.
 - ``latency`` (docs/benchmarks.md): time per stage at each working size, from the newest
   ``latency*.json``.
 - ``large-clouds`` (docs/benchmarks.md): time, error and peak memory per large pair.
@@ -130,6 +131,13 @@ def newest_latency() -> tuple[str, dict] | None:
     return name, data
 
 
+def pairs_of(data: dict | None, entry: dict) -> int | None:
+    """How many pairs a method's figures are over: its own count, the file's, or its rows."""
+    data = data or {}
+    return (entry.get("pairs") or data.get("pairs")
+            or sum(1 for row in data.get("rows", []) if row.get("method") == "logdesc_auto") or None)
+
+
 # ----------------------------------------------------------------------------- rows
 def accuracy_rows() -> list[dict]:
     rows = []
@@ -142,8 +150,7 @@ def accuracy_rows() -> list[dict]:
         ours, ours_icp = methods.get("logdesc_auto", {}), methods.get("logdesc_auto_icp", {})
         peer, peer_icp = methods.get("fpfh_ransac", {}), methods.get("fpfh_ransac_icp", {})
         kiss = kiss_entry(methods)
-        pairs = (ours.get("pairs") or (data or {}).get("pairs")
-                 or sum(1 for r in (data or {}).get("rows", []) if r.get("method") == "logdesc_auto") or None)
+        pairs = pairs_of(data, ours)
         rows.append({
             "label": label, "source": name, "pairs": str(pairs) if pairs else MISSING,
             "ours": pair_of(percent(ours.get("success")), percent(ours_icp.get("success"))),
@@ -164,7 +171,8 @@ def latency_row(found: tuple[str, dict] | None) -> list[dict]:
     size = data.get("results", {}).get(LATENCY_SIZE, {})
     ours = size.get("onnxruntime", {}).get("stages", {}).get("wall", {})
     peer = size.get("open3d", {}).get("methods", {}).get("fpfh_ransac", {})
-    kiss = next((value for key, value in size.items() if "kiss" in key.lower()), None)
+    kiss = next((value for key, value in {**size, **size.get("open3d", {}).get("methods", {})}.items()
+                 if "kiss" in key.lower()), None)
     ms = lambda value: MISSING if number(value) is None else f"{value:.0f}"  # noqa: E731
     return [{
         "label": f"One real Bunny scan pair at {LATENCY_SIZE} points per cloud (time only)", "source": name,
@@ -221,6 +229,31 @@ def results_table(link_prefix: str | None) -> str:
     return "\n".join(lines)
 
 
+def flag_table() -> str:
+    """The success flag on test data: precision (right among the claimed successes) and recall
+    (claimed among the right poses), without / with ICP."""
+    lines = ["| Pairs | n | precision %, without / with ICP | recall %, without / with ICP | Made by |",
+             "| --- | ---: | ---: | ---: | --- |"]
+    for label, name, key in ACCURACY_ROWS:
+        data = load(name)
+        summary = (data or {}).get("summary", {})
+        methods = summary.get(key, {}) if key else summary
+        ours, ours_icp = methods.get("logdesc_auto", {}), methods.get("logdesc_auto_icp", {})
+        precision = [entry.get("flag_precision", entry.get("right_when_flagged")) for entry in (ours, ours_icp)]
+        recall = [entry.get("flag_recall") for entry in (ours, ours_icp)]
+        pairs = pairs_of(data, ours) or MISSING
+        lines.append(f"| {label} | {pairs} | {pair_of(*map(percent, precision))} | {pair_of(*map(percent, recall))}"
+                     f" | `benchmarks/results/{report_of(name)}` |")
+    print("  success flag  <-  the accuracy rows' files")
+    return "\n".join(lines)
+
+
+def peer_name(method: str) -> str:
+    if "kiss" in method.lower():
+        return "KISS-Matcher"
+    return "Open3D " + method.replace("_", " + ").upper()
+
+
 def latency_table() -> str:
     found = newest_latency()
     if found is None:
@@ -252,7 +285,7 @@ def latency_table() -> str:
     for method in peers:
         values = [results[size].get("open3d", {}).get("methods", {}).get(method, {}).get("median_ms")
                   for size in sizes]
-        lines.append(f"| Open3D {method.replace('_', ' + ').upper()} | "
+        lines.append(f"| {peer_name(method)} | "
                      + " | ".join(cell(v) for v in values) + " |")
     for key in kiss_keys:
         values = [first_median_ms(results[size].get(key)) for size in sizes]
@@ -307,6 +340,7 @@ def rendered() -> dict[Path, str]:
     docs = ROOT / "docs" / "benchmarks.md"
     print("docs/benchmarks.md:")
     text = replace_block(docs.read_text(), "results", results_table(link_prefix=None))
+    text = replace_block(text, "flag", flag_table())
     text = replace_block(text, "latency", latency_table())
     pages[docs] = replace_block(text, "large-clouds", large_clouds_table())
     return pages
