@@ -205,7 +205,8 @@ def large_cloud_rows(data: dict | None) -> list[dict]:
 # ----------------------------------------------------------------------------- tables
 def results_table(link_prefix: str | None) -> str:
     """The one results table. ``link_prefix``: relative path from the page to the repository
-    root (links to the reports), or None to name the reports as code (pages outside the tree)."""
+    root (links to the reports), or None to name the reports, relative to benchmarks/results/,
+    as code (the documentation site holds no copy of them)."""
     rows = accuracy_rows() + latency_row(newest_latency()) + large_cloud_rows(load("large_clouds.json"))
     kiss = any(row["has_kiss"] for row in rows)
     header = ["Pairs", "n", "logdesc-rt success %, without / with ICP", "Open3D FPFH + RANSAC success %, "
@@ -217,7 +218,7 @@ def results_table(link_prefix: str | None) -> str:
     for row in rows:
         report = report_of(row["source"])
         if link_prefix is None:
-            source = f"`benchmarks/results/{report}`"
+            source = f"`{report}`"
         else:
             source = f"[{Path(report).name}]({link_prefix}benchmarks/results/{report})"
         cells = [row["label"], row["pairs"], row["ours"], row["open3d"]]
@@ -243,7 +244,7 @@ def flag_table() -> str:
         recall = [entry.get("flag_recall") for entry in (ours, ours_icp)]
         pairs = pairs_of(data, ours) or MISSING
         lines.append(f"| {label} | {pairs} | {pair_of(*map(percent, precision))} | {pair_of(*map(percent, recall))}"
-                     f" | `benchmarks/results/{report_of(name)}` |")
+                     f" | `{report_of(name)}` |")
     print("  success flag  <-  the accuracy rows' files")
     return "\n".join(lines)
 
