@@ -19,7 +19,7 @@ from logdesc_rt import Registrar
 from logdesc_rt.config import PAPER_GEOMETRY, GeometryConfig
 from logdesc_rt.geometry import compute_geometry
 
-from .shapes import fibonacci_sphere
+from .shapes import fibonacci_sphere, twisted_bar
 
 INVARIANT_GEOMETRY = GeometryConfig(edge_layout="invariant", normals="pca")
 CHIRAL_GEOMETRY = GeometryConfig(edge_layout="chiral", normals="pca")
@@ -310,11 +310,21 @@ def test_the_bundled_model_registers_a_clean_shape_at_any_relative_rotation(bund
     assert np.linalg.norm(result.translation - expected_translation) < 0.02 * np.ptp(shape, axis=0).max()
 
 
-def test_the_bundled_model_tells_a_shape_from_its_mirror_image(bundled_registrar, shape):
-    """v4 reads the chiral edge layout: its trained descriptors of a point and of the point's
-    mirror image (the shape reflected in x = 0, same index) differ (1 - cosine > 1e-3) at most
-    points of a ModelNet chair. v3 read only reflection-blind channels (identical descriptors)."""
+def _assert_the_bundled_model_tells_apart_from_its_mirror_image(bundled_registrar, shape: np.ndarray) -> None:
     if bundled_registrar.manifest.geometry.edge_layout != "chiral":
-        pytest.skip("the bundled model is v3: mirror-blind by construction")
-    every_point = Registrar(max_points=len(shape))  # the descriptors of the whole chair, not a subset
+        pytest.skip("the bundled model reads no chiral channel: mirror-blind by construction")
+    every_point = Registrar(max_points=len(shape))  # the descriptors of the whole shape, not a subset
     assert np.mean(_mirror_distance(every_point, shape) > 1e-3) > 0.5
+
+
+def test_the_bundled_model_tells_a_shape_from_its_mirror_image(bundled_registrar):
+    """The bundled model reads the chiral edge layout: its trained descriptors of a point and
+    of the point's mirror image (the shape reflected in x = 0, same index) differ (1 - cosine
+    > 1e-3) at most points of a shape that is chiral everywhere (a twisted bar)."""
+    _assert_the_bundled_model_tells_apart_from_its_mirror_image(bundled_registrar, twisted_bar(1024))
+
+
+def test_the_bundled_model_tells_a_chair_from_its_mirror_image(bundled_registrar, shared_data):
+    """The same on a ModelNet10 test chair, which is not mirror symmetric about x = 0 point by
+    point. A reflection-blind model (v3's channels alone) gives identical descriptors."""
+    _assert_the_bundled_model_tells_apart_from_its_mirror_image(bundled_registrar, _real_shape(shared_data))
