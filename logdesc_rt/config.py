@@ -61,7 +61,7 @@ class GeometryConfig(_DictMixin):
             ``"umbrella"``: the paper's triangle-umbrella normal.
             ``"pca"``: the LRF's normal axis w (PCA over the ``pca_radius`` neighbourhood), the
             one that agrees best between two noisy or partial views of a surface
-            (``benchmarks/geometry_agreement.py``); its sign carries no information for the
+            (``docs/decisions.md``); its sign carries no information for the
             invariant layout, which reads only sign-free functions of it.
     """
 
