@@ -241,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG as ROTATION_LIMIT_DEG  # noqa: E402
 from logdesc_rt.metrics import SUCCESS_TRANSLATION_FRACTION as TRANSLATION_LIMIT  # noqa: E402
 TARGET_PRECISION = 0.97  # aim above the 95 % goal, for the margin between calibration and use
+# The fast exit skips the rest of verification: its claims must be right more often still.
+EXIT_TARGET_PRECISION = 0.99
 L2_PENALTY = 1e-2
 REPORT = ROOT / "benchmarks" / "results" / "success_calibration"
 
@@ -407,13 +409,14 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         "",
         f"Success threshold on the confidence: **{config['success_threshold']:.4f}**.",
         "",
+        *(_exit_lines(config)),
         "The flag on the calibration pairs (in-sample: an optimistic estimate). `refined`: the",
         "verified (ICP-refined) pose, what `refine=...` returns; `unrefined`: what `register()`",
         "returns without ICP (`pose_selection.coarse_pose`: the matches its verified pose explains,",
         "re-fitted), claimed only within `same_pose_deg` of its verified pose.",
         "",
-        "| mode | group | pairs | right | claimed | precision | recall |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+        "| mode | group | pairs | right | claimed | precision | recall | fast exits | right among them |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     lines += _flag_rows(payload["flag_on_calibration_pairs"])
     if payload.get("flag_held_out"):
@@ -423,11 +426,33 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
             "fitted, weights and threshold, on the pairs of the other folds' shapes alone; an estimate",
             "of what the flag does on shapes it was not fitted on):",
             "",
-            "| mode | group | pairs | right | claimed | precision | recall |",
-            "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+            "| mode | group | pairs | right | claimed | precision | recall | fast exits | right among them |",
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
             *_flag_rows(payload["flag_held_out"]),
         ]
     return "\n".join(lines) + "\n"
+
+
+def _exit_lines(config: dict) -> list[str]:
+    """The fast exit's model in the report (none when the calibration found no threshold)."""
+    from logdesc_rt.config import EXIT_FEATURES
+
+    if not config.get("exit_weights"):
+        return ["No fast exit: no threshold gave exits right at least "
+                f"{EXIT_TARGET_PRECISION:.0%} of the time.", ""]
+    return [
+        f"Fast exit: the `{config['exit_estimator']}` hypothesis alone, refined and scored; a second logistic model",
+        "(every group the same total weight) over its own features; the pair exits at the lowest threshold",
+        f"whose exits are right >= {EXIT_TARGET_PRECISION:.0%} of the time, verified and as returned without ICP.",
+        "",
+        "| exit feature | weight |",
+        "| --- | ---: |",
+        *[f"| {name} | {weight:.4f} |" for name, weight in zip(EXIT_FEATURES, config["exit_weights"], strict=True)],
+        f"| (bias) | {config['exit_bias']:.4f} |",
+        "",
+        f"Exit threshold: **{config['exit_threshold']:.4f}**.",
+        "",
+    ]
 
 
 def _flag_rows(summary: dict) -> list[str]:
@@ -437,7 +462,10 @@ def _flag_rows(summary: dict) -> list[str]:
         for group, q in groups.items():
             precision = "-" if q["precision"] != q["precision"] else f"{q['precision']:.3f}"
             recall = "-" if q["recall"] != q["recall"] else f"{q['recall']:.3f}"
-            lines.append(f"| {mode} | {group} | {q['pairs']} | {q['right']} | {q['claimed']} | {precision} | {recall} |")
+            lines.append(
+                f"| {mode} | {group} | {q['pairs']} | {q['right']} | {q['claimed']} | {precision} | {recall} "
+                f"| {q.get('fast_exits', 0)} | {q.get('fast_exits_right', 0)} |"
+            )
     return lines
 
 
@@ -509,7 +537,9 @@ def fit(
     report.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
     if manifest_dir is not None:
         write_calibration(manifest_dir, fitted)
-    print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": fitted.success_threshold}, indent=1))
+    print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": fitted.success_threshold,
+                      "exit_weights": fitted.exit_weights, "exit_bias": fitted.exit_bias,
+                      "exit_threshold": fitted.exit_threshold}, indent=1))
     for label, table in (("in-sample", summary), ("held-out", held_out)):
         for mode in ("refined", "unrefined") if table else ():
             for group, quality in table[mode].items():
@@ -518,7 +548,8 @@ def fit(
 
 def calibrate(rows: list[dict], base):
     """The logistic weights and the success threshold fitted on ``rows`` (hypotheses of
-    :func:`pair_hypotheses`): ``base`` (a VerificationConfig) with them filled in."""
+    :func:`pair_hypotheses`), and the fast exit's model (:func:`calibrate_exit`): ``base`` (a
+    VerificationConfig) with them filled in."""
     import dataclasses
 
     features = np.array([row["features"] for row in rows])
@@ -542,7 +573,62 @@ def calibrate(rows: list[dict], base):
     real_wrong = [outcomes[p]["confidence"] for p in pairs if p.startswith("bunny") and not outcomes[p]["refined_right"]]
     if real_wrong:
         threshold = max(threshold, float(np.ceil((max(real_wrong) + 1e-4) * 1e4) / 1e4))
-    return dataclasses.replace(fitted, success_threshold=threshold)
+    return calibrate_exit(rows, dataclasses.replace(fitted, success_threshold=threshold))
+
+
+def exit_rows(rows: list[dict], estimator: str) -> list[dict]:
+    """Per pair, the hypothesis the fast exit scores: the one ``estimator`` leads (it is
+    refined and its features, but for agreement and margin, are those of the fast exit)."""
+    return [row for row in rows if row["estimators"][0] == estimator and row["refined"]]
+
+
+def exit_features(row: dict) -> np.ndarray:
+    """The EXIT_FEATURES of a hypothesis row."""
+    from logdesc_rt.config import EXIT_FEATURES
+
+    return np.array([row["features"][FEATURES.index(name)] for name in EXIT_FEATURES])
+
+
+def calibrate_exit(rows: list[dict], base):
+    """``base`` with the fast exit's model fitted on ``rows``: a logistic over the exit
+    estimator's hypothesis' own features, and the lowest threshold whose exits, on these pairs,
+    are right at least EXIT_TARGET_PRECISION of the time both verified and as ``register()``
+    returns them without ICP (an exit claims the unrefined pose only within its verified pose),
+    and claim no wrong real-scan pose. No exit when no threshold qualifies."""
+    import dataclasses
+
+    candidates = exit_rows(rows, base.exit_estimator)
+    if not candidates or len({row["verified_right"] for row in candidates}) < 2:
+        return dataclasses.replace(base, exit_weights=(), exit_bias=0.0, exit_threshold=1.0)
+    per_group: dict[str, int] = {}
+    for row in candidates:
+        per_group[row["group"]] = per_group.get(row["group"], 0) + 1
+    features = np.array([exit_features(row) for row in candidates])
+    labels = np.array([row["verified_right"] for row in candidates])
+    sample_weights = np.array([1.0 / per_group[row["group"]] for row in candidates])
+    coefficients, bias = fit_logistic(features, labels, sample_weights)
+    z = bias + features @ coefficients
+    confidence = 1.0 / (1.0 + np.exp(-z))
+    verified_right = labels
+    unrefined_right = np.array([row["unrefined_right"] for row in candidates])
+    within = np.array([row["within_verified"] for row in candidates])
+    real = np.array([row["group"].startswith("bunny") for row in candidates])
+    threshold = 1.0
+    for value in np.unique(np.round(confidence, 4)):
+        claimed = confidence >= value
+        claimed_unrefined = claimed & within
+        if not claimed.any() or not claimed_unrefined.any():
+            continue
+        if (np.mean(verified_right[claimed]) >= EXIT_TARGET_PRECISION
+                and np.mean(unrefined_right[claimed_unrefined]) >= EXIT_TARGET_PRECISION
+                and not np.any(claimed & real & ~verified_right)):
+            threshold = float(value)
+            break
+    if threshold >= 1.0:
+        return dataclasses.replace(base, exit_weights=(), exit_bias=0.0, exit_threshold=1.0)
+    return dataclasses.replace(
+        base, exit_weights=tuple(coefficients.tolist()), exit_bias=float(bias), exit_threshold=threshold
+    )
 
 
 def flag_outcomes(rows: list[dict], fitted) -> dict[str, dict]:
@@ -555,10 +641,19 @@ def flag_outcomes(rows: list[dict], fitted) -> dict[str, dict]:
         confidence = logistic_confidence(np.array(row["features"]), fitted)
         if row["pair"] not in chosen or confidence > chosen[row["pair"]][0]:
             chosen[row["pair"]] = (confidence, row)
+    exits: dict[str, float] = {}
+    if fitted.fast_exit:
+        for row in exit_rows(rows, fitted.exit_estimator):
+            z = fitted.exit_bias + float(np.dot(fitted.exit_weights, exit_features(row)))
+            confidence = 1.0 / (1.0 + np.exp(-z))
+            if confidence >= fitted.exit_threshold:
+                exits[row["pair"]] = confidence
+                chosen[row["pair"]] = (confidence, row)
     outcomes = {}
     for pair, (confidence, row) in chosen.items():
-        claimed = bool(confidence >= fitted.success_threshold)
+        claimed = bool(pair in exits or confidence >= fitted.success_threshold)
         outcomes[pair] = {
+            "fast_exit": pair in exits,
             "confidence": float(confidence),
             "refined_claimed": claimed,
             "refined_right": bool(row["verified_right"]),
@@ -581,6 +676,9 @@ def flag_summary(outcomes: dict[str, dict], groups: list[str]) -> dict[str, dict
             claimed = np.array([outcomes[p][f"{mode}_claimed"] for p in member])
             right = np.array([outcomes[p][f"{mode}_right"] for p in member])
             summary[mode][group] = flag_quality(claimed, right)
+            exited = np.array([outcomes[p].get("fast_exit", False) for p in member])
+            summary[mode][group]["fast_exits"] = int(exited.sum())
+            summary[mode][group]["fast_exits_right"] = int((exited & right).sum())
     return summary
 
 
@@ -683,6 +781,10 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "refit_spacings": fitted.refit_spacings,
         "refit_plane_steps": fitted.refit_plane_steps,
         "refit_point_weight": fitted.refit_point_weight,
+        "exit_estimator": fitted.exit_estimator,
+        "exit_weights": list(fitted.exit_weights),
+        "exit_bias": fitted.exit_bias,
+        "exit_threshold": fitted.exit_threshold,
     }
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")

@@ -137,15 +137,25 @@ class PairMatches:
             return None
         return mutual_nearest_descriptors(self.source_descriptors, self.target_descriptors)
 
-    def candidates(self, config: RuntimeConfig | None = None) -> list[tuple[str, np.ndarray]]:
+    def candidates(
+        self, config: RuntimeConfig | None = None, estimators: tuple[str, ...] | None = None
+    ) -> list[tuple[str, np.ndarray]]:
         """[(estimator, (4, 4) user-frame pose)] of every candidate estimator (unverified), then
-        those of ``config.verification.descriptor_consensus`` on :attr:`descriptor_matches`.
+        those of ``config.verification.descriptor_consensus`` on :attr:`descriptor_matches`;
+        with ``estimators``, those estimators' poses on the matches alone (a degenerate one is
+        left out).
 
         Raises:
             RegistrationError: fewer than 3 mutual matches.
         """
         config = self.config if config is None else config
         self._require_matches()
+        if estimators is not None:
+            poses = candidate_poses(
+                *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction,
+                tuple(estimators),
+            )
+            return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
         estimators = config.verification.candidates
         if config.estimator not in ("auto", *estimators):  # a user's choice outside the model's set
             estimators = (*estimators, config.estimator)

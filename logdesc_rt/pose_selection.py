@@ -56,6 +56,19 @@ def register_matched(
     """
     report = report if report is not None else (lambda message: None)
     timings = dict(pair.timings)
+    verifier, fast = None, None
+    if config.estimator == "auto" and initial is None and config.verification.fast_exit and len(pair.matches) >= MIN_MATCHES:
+        # The fast exit (logdesc_rt.verification): one estimator's pose, refined and scored alone.
+        exit_estimator = config.verification.exit_estimator
+        with timed(timings, "pose"), one_thread_per_caller():
+            exit_pose = dict(pair.candidates(config, estimators=(exit_estimator,))).get(exit_estimator)
+        if exit_pose is not None:
+            report("verifying the leading pose on the full clouds")
+            with timed(timings, "verification"), one_thread_per_caller():
+                verifier = pose_verifier(pair, config)
+                fast = verifier.fast_exit(exit_estimator, exit_pose)
+    if fast is not None:
+        return _verified_result(pair, config, timings, verifier, fast, report)
     with timed(timings, "pose"), one_thread_per_caller():
         candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES else []
         if initial is not None:
@@ -74,25 +87,45 @@ def register_matched(
     if not candidates:
         return unregistered_result(pair, config, timings, "no candidate pose: the matches are degenerate (all on one line)")
 
-    scale = pair.normalization.scale
-    refinement = config.refinement
-    distance = correspondence_distance(pair, config)
     report(
         f"verifying {len(candidates)} candidate poses on the full clouds "
         f"({len(pair.source_points)} x {len(pair.target_points)} points)"
     )
     with timed(timings, "verification"), one_thread_per_caller():
-        correspondences = pair.correspondences
-        verifier = PoseVerifier(
-            pair.source_points,
-            pair.target_points,
-            pair.source_points[correspondences[:, 0]],
-            pair.target_points[correspondences[:, 1]],
-            pair.matches.confidence,
-            scale,
-            config.verification,
-        )
+        verifier = verifier if verifier is not None else pose_verifier(pair, config)
         verification = verify_candidates(verifier, candidates, pair.normalization, *pair.matched_network_points(), config)
+    return _verified_result(pair, config, timings, verifier, verification, report, candidates)
+
+
+def pose_verifier(pair: PairMatches, config: RuntimeConfig) -> PoseVerifier:
+    """The :class:`PoseVerifier` of a matched pair: its full clouds and matches, user frame."""
+    correspondences = pair.correspondences
+    return PoseVerifier(
+        pair.source_points,
+        pair.target_points,
+        pair.source_points[correspondences[:, 0]],
+        pair.target_points[correspondences[:, 1]],
+        pair.matches.confidence,
+        pair.normalization.scale,
+        config.verification,
+    )
+
+
+def _verified_result(
+    pair: PairMatches,
+    config: RuntimeConfig,
+    timings: dict[str, float],
+    verifier: PoseVerifier,
+    verification: VerificationResult,
+    report: Callable[[str], None],
+    candidates: list[tuple[str, np.ndarray]] | None = None,
+) -> RegistrationResult:
+    """The result of a verified pair: the chosen hypothesis' pose (re-fitted on its matches,
+    or the configured estimator's), refined if the config asks, and the flag."""
+    refinement = config.refinement
+    distance = correspondence_distance(pair, config)
+    correspondences = pair.correspondences
+    threshold = config.verification.exit_threshold if verification.fast_exit else config.verification.success_threshold
     if config.estimator == "auto":
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
@@ -105,7 +138,7 @@ def register_matched(
     else:
         chosen = next(h for h in verification.hypotheses if config.estimator in h.estimators)
         chosen_estimator = config.estimator
-        pose = dict(candidates)[chosen_estimator]
+        pose = dict(candidates or [])[chosen_estimator]
 
     refined, icp_result = pose, None
     if refinement.method is not None:
@@ -116,12 +149,12 @@ def register_matched(
             )
         refined = icp_result.transformation
         with timed(timings, "verification"):
-            confidence = verifier.confidence_at(refined, chosen)
+            confidence = verifier.confidence_at(refined, chosen, fast_exit=verification.fast_exit)
     else:
         # The returned pose comes from the matches alone: right only if it is close to the
         # alignment verification found.
         confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
-    success = bool(confidence >= config.verification.success_threshold)
+    success = bool(confidence >= threshold)
     return _judged_result(
         pair, config, timings, distance, refined,
         pose_estimator=chosen_estimator,
@@ -132,8 +165,7 @@ def register_matched(
         confidence=float(confidence),
         verification=verification,
         reason=None if success else (
-            f"not verified: confidence {confidence:.3f} is below the success threshold "
-            f"{config.verification.success_threshold:.3f}"
+            f"not verified: confidence {confidence:.3f} is below the success threshold {threshold:.3f}"
         ),
     )
 

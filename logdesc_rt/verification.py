@@ -57,11 +57,17 @@ stage produces) proposes alternatives, refined and scored with the rest:
   pose leaves unexplained (:func:`~logdesc_rt.pose.candidates.unexplained_candidate_poses`, by
   the caller, who holds the matches in network units).
 
-On 60 validation scan pairs a right alternative existed for 16 of the 22 whose leading pose
-was wrong (every alternative at full cost, ``benchmarks/second_look_study.py``); with the flag
-refitted, ``register()`` went from 51.7 to 68.3 % on them without ICP, and lost nothing on the
-validation partial and resampled-partial pairs (``benchmarks/results/second_look/README.md``).
 ``VerificationConfig.turn_over_axes`` and ``.second_consensus`` set how much of it runs.
+
+**The fast exit.** A calibration may carry a second logistic model, the exit model, over the
+features of one hypothesis alone (``EXIT_FEATURES``: no agreement, no margin). Before any other
+candidate is estimated, the exit estimator's pose (``VerificationConfig.exit_estimator``) is
+refined and scored; when the exit model's confidence reaches ``exit_threshold`` (set on
+validation pairs where such exits were right at least 99 % of the time), that hypothesis is
+kept with the exit model's confidence, and the other candidates, the second look and the
+rival scoring do not run (:meth:`PoseVerifier.fast_exit`). Otherwise every candidate is
+verified as above, and the flag is the full model's. ``VerificationResult.fast_exit`` says
+which path a pair took.
 
 The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
 the pose sits in the basin of a good alignment. When the caller does not refine, the
@@ -78,7 +84,7 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .config import VERIFICATION_FEATURES, VerificationConfig
+from .config import EXIT_FEATURES, VERIFICATION_FEATURES, VerificationConfig
 from .metrics import rotation_error_deg
 from .refinement import estimate_normals, icp, point_to_point_icp_batch
 from .sampling import seeded_subset
@@ -130,11 +136,14 @@ class VerificationResult:
         hypotheses: every distinct hypothesis, best first.
         candidate_count: candidate poses scored, the estimators' and the second look's (before
             merging equal ones).
+        fast_exit: True when the exit estimator's hypothesis alone was scored and kept (its
+            ``confidence`` is then the exit model's, :meth:`PoseVerifier.fast_exit`).
     """
 
     best: Hypothesis
     hypotheses: tuple[Hypothesis, ...] = field(default_factory=tuple)
     candidate_count: int = 0
+    fast_exit: bool = False
 
 
 def _same_pose(first: np.ndarray, second: np.ndarray, degrees: float, distance: float, centre: np.ndarray) -> bool:
@@ -156,6 +165,18 @@ def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
 def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
     """Calibrated probability, in [0, 1], from a (F,) feature vector."""
     z = config.bias + float(np.dot(config.weights, features))
+    return float(1.0 / (1.0 + math.exp(-z))) if z > -700 else 0.0
+
+
+_EXIT_COLUMNS = [VERIFICATION_FEATURES.index(name) for name in EXIT_FEATURES]
+
+
+def exit_confidence(features: np.ndarray, config: VerificationConfig) -> float:
+    """The exit model's calibrated probability, in [0, 1], from a (F,) feature vector in
+    VERIFICATION_FEATURES order (it reads the EXIT_FEATURES among them); 0 without an exit model."""
+    if not config.fast_exit:
+        return 0.0
+    z = config.exit_bias + float(np.dot(config.exit_weights, np.asarray(features)[_EXIT_COLUMNS]))
     return float(1.0 / (1.0 + math.exp(-z))) if z > -700 else 0.0
 
 
@@ -206,6 +227,32 @@ class PoseVerifier:
         # ... and the spin in that plane (about the least axis), which no turn-over or ICP reaches.
         self.spin = self.half_turns[0] if config.turn_over_spin else None
         self.screen_source = self.source[seeded_subset(len(self.source), TURN_OVER_SCREEN_POINTS, generator)]
+        self._refined: dict[bytes, np.ndarray] = {}
+
+    def fast_exit(self, estimator: str, pose: np.ndarray) -> VerificationResult | None:
+        """The fast exit: ``pose`` (the exit estimator's, user frame) refined and scored alone.
+
+        Returns the one-hypothesis result when the exit model's confidence on its features
+        (EXIT_FEATURES: those of this hypothesis alone) reaches ``exit_threshold``, else None
+        (the caller then verifies every candidate, :meth:`verify`; the refinement done here is
+        reused). None as well without an exit model.
+        """
+        if not self.config.fast_exit:
+            return None
+        refined = self.refine(pose)
+        features = self.features(refined)
+        confidence = exit_confidence(features, self.config)
+        if confidence < self.config.exit_threshold:
+            return None
+        hypothesis = Hypothesis(
+            estimators=(estimator,),
+            transformation=pose,
+            verified_transformation=refined,
+            features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
+            confidence=confidence,
+            refined=True,
+        )
+        return VerificationResult(best=hypothesis, hypotheses=(hypothesis,), candidate_count=1, fast_exit=True)
 
     def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
         """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""
@@ -264,7 +311,14 @@ class PoseVerifier:
         return fitness + match_ratio
 
     def refine(self, pose: np.ndarray) -> np.ndarray:
-        """(4, 4) ``pose`` after a short point-to-plane ICP on the subsets (adaptive distance)."""
+        """(4, 4) ``pose`` after a short point-to-plane ICP on the subsets (adaptive distance);
+        a pose refined before is not refined again (the same result: ICP is deterministic)."""
+        key = np.ascontiguousarray(pose, dtype=np.float64).tobytes()
+        if key not in self._refined:
+            self._refined[key] = self._short_icp(pose)
+        return self._refined[key]
+
+    def _short_icp(self, pose: np.ndarray) -> np.ndarray:
         return icp(
             self.source,
             self.target,
@@ -382,8 +436,8 @@ class PoseVerifier:
             pose, hypothesis.verified_transformation, self.config.same_pose_deg, self.distance, self.centre
         )
 
-    def confidence_at(self, pose: np.ndarray, hypothesis: Hypothesis) -> float:
+    def confidence_at(self, pose: np.ndarray, hypothesis: Hypothesis, fast_exit: bool = False) -> float:
         """Calibrated confidence of ``pose`` (e.g. the hypothesis after the full ICP), with the
-        hypothesis' agreement and margin."""
+        hypothesis' agreement and margin; the exit model's for a hypothesis of the fast exit."""
         features = self.features(pose, hypothesis.features["agreement"], hypothesis.features["margin"])
-        return logistic_confidence(features, self.config)
+        return exit_confidence(features, self.config) if fast_exit else logistic_confidence(features, self.config)

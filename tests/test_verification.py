@@ -770,7 +770,7 @@ def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeyp
             right = bool(rng.random() < 0.6)
             features = rng.normal(size=len(calibrate_success.FEATURES)) + (1.5 if right else 0.0)
             rows.append({"pair": pair, "group": "val_scan", "features": features.tolist(), "verified_right": right,
-                         "unrefined_right": right, "within_verified": True})
+                         "unrefined_right": right, "within_verified": True, "estimators": ["fsr"], "refined": True})
     fitted_on: list[set[str]] = []
     real_calibrate = calibrate_success.calibrate
 
@@ -790,3 +790,86 @@ def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeyp
                 judged_by.setdefault(pair, 0)
                 judged_by[pair] += 1
     assert all(count == 1 for count in judged_by.values()) and len(judged_by) == len(shapes)  # ... each exactly once
+
+
+# -- the fast exit --------------------------------------------------------------------------
+def _exit_config(threshold: float) -> dict:
+    """An exit model that trusts fitness alone (hand-set, for the tests): confidence 0.95 at a
+    fitness of 1, 0.12 at 0."""
+    from logdesc_rt.config import EXIT_FEATURES
+
+    weights = [5.0 if name == "fitness" else 0.0 for name in EXIT_FEATURES]
+    return {"verification": {"exit_weights": weights, "exit_bias": -2.0, "exit_threshold": threshold}}
+
+
+def test_a_sure_pair_takes_the_fast_exit_and_an_unsure_one_gets_the_full_verification(registrar, demo_pair):
+    """Exit: one hypothesis, the exit estimator's, with the exit model's confidence, and a
+    right pose; no exit: exactly the result without an exit model (same pose, hypotheses,
+    confidence), so the full path is unchanged by the attempt."""
+    from logdesc_rt.metrics import rotation_error_deg
+
+    full = registrar.register(demo_pair.source, demo_pair.target)
+    assert not full.verification.fast_exit and len(full.verification.hypotheses) > 1
+
+    fast = registrar.register(demo_pair.source, demo_pair.target, config=_exit_config(0.8))
+    assert fast.verification.fast_exit
+    assert fast.verification.candidate_count == 1 and fast.pose_estimator == "fsr"
+    best = fast.verification.best
+    expected = 1.0 / (1.0 + np.exp(2.0 - 5.0 * best.features["fitness"]))
+    assert fast.confidence == pytest.approx(expected) and fast.success
+    assert rotation_error_deg(fast.rotation, demo_pair.true_transformation[:3, :3]) < 2.0
+    again = registrar.register(demo_pair.source, demo_pair.target, config=_exit_config(0.8))
+    assert np.array_equal(again.transformation, fast.transformation)  # same input, same output
+
+    unsure = registrar.register(demo_pair.source, demo_pair.target, config=_exit_config(0.99))
+    assert not unsure.verification.fast_exit
+    assert np.array_equal(unsure.transformation, full.transformation)
+    assert unsure.confidence == full.confidence
+    assert [h.estimators for h in unsure.verification.hypotheses] == [h.estimators for h in full.verification.hypotheses]
+
+
+def test_the_fast_exit_is_skipped_for_a_chosen_estimator_or_an_initial_guess(registrar, demo_pair):
+    config = _exit_config(0.5)
+    assert not registrar.register(demo_pair.source, demo_pair.target, config=config, estimator="svd").verification.fast_exit
+    init = registrar.register(demo_pair.source, demo_pair.target).transformation
+    assert not registrar.register(demo_pair.source, demo_pair.target, config=config, init=init).verification.fast_exit
+
+
+def test_an_exit_model_must_have_one_weight_per_exit_feature():
+    with pytest.raises(ValueError, match="exit_weights"):
+        VerificationConfig(exit_weights=(1.0, 2.0))
+    with pytest.raises(ValueError, match="exit_estimator"):
+        VerificationConfig(exit_estimator="magic")
+    with pytest.raises(ValueError, match="exit_threshold"):
+        VerificationConfig(exit_threshold=1.5)
+    assert not VerificationConfig().fast_exit
+
+
+def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_percent_of_the_time():
+    """calibrate_exit on made-up hypotheses whose fitness separates right from wrong except for
+    a few: the threshold admits no wrong exit beyond 1 %, and a real-scan wrong pose never exits."""
+    from logdesc_rt.config import VERIFICATION_FEATURES
+
+    calibrate_success = _calibrate_success()
+    rng = np.random.default_rng(0)
+    rows = []
+    for index in range(400):
+        right = index % 4 != 0
+        fitness = rng.uniform(0.6, 1.0) if right else rng.uniform(0.0, 0.7)
+        features = [0.0] * len(VERIFICATION_FEATURES)
+        features[VERIFICATION_FEATURES.index("fitness")] = fitness
+        group = "bunny_unbenchmarked" if index % 50 == 0 else "val_in_range"
+        rows.append({"pair": f"{group}/{index:04d}", "group": group, "estimators": ["fsr"], "refined": True,
+                     "features": features, "verified_right": right, "unrefined_right": right, "within_verified": True})
+    fitted = calibrate_success.calibrate_exit(rows, VerificationConfig())
+    assert fitted.fast_exit and 0.0 < fitted.exit_threshold < 1.0
+    outcomes = calibrate_success.flag_outcomes(rows, fitted)
+    exits = [outcome for outcome in outcomes.values() if outcome["fast_exit"]]
+    assert len(exits) > 100
+    assert np.mean([outcome["refined_right"] for outcome in exits]) >= calibrate_success.EXIT_TARGET_PRECISION
+    wrong_real = [row for row in rows if row["group"].startswith("bunny") and not row["verified_right"]]
+    assert wrong_real and not any(outcomes[row["pair"]]["fast_exit"] for row in wrong_real)
+    # Nothing separable: no exit at all.
+    for row in rows:
+        row["verified_right"] = row["unrefined_right"] = bool(rng.random() < 0.5)
+    assert not calibrate_success.calibrate_exit(rows, VerificationConfig()).fast_exit
