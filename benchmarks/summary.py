@@ -41,8 +41,8 @@ ACCURACY_ROWS = [
 ]
 LARGE_CASES = {
     "bunny_40k": "Real Bunny scan pair, 40k x 40k points",
-    "merged_70k": "Merged Bunny scans, 70k x 70k points in metres, 1 km from the origin",
-    "merged_200k": "Merged Bunny scans, 200k x 200k points in metres, 1 km from the origin",
+    "merged_120k": "Merged Bunny scans, 120k x 120k points in metres, 1 km from the origin",
+    "merged_300k": "Merged Bunny scans, 300k x 300k points in metres, 1 km from the origin",
 }
 LATENCY_SIZE = "1024"
 

@@ -414,7 +414,7 @@ def test_large_cloud_cases_carry_their_true_pose(shared_data):
 
     import large_clouds
 
-    for case, size in (("bunny_40k", 30_000), ("merged_70k", 70_000), ("merged_200k", 200_000)):
+    for case, size in (("bunny_40k", 30_000), ("merged_120k", 120_000), ("merged_300k", 300_000)):
         source, target, truth = large_clouds.build_case(case)
         assert len(source) >= size and len(target) >= size
         tree = KDTree(target)
