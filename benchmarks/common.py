@@ -162,6 +162,8 @@ def pair_record(pair: BenchmarkPair, method: str, result) -> dict:
     if getattr(result, "flagged_success", None) is not None:
         record["flagged_success"] = bool(result.flagged_success)
         record["confidence"] = float(result.confidence)
+    if getattr(result, "fast_exit", None) is not None:
+        record["fast_exit"] = bool(result.fast_exit)
     if result.pred_match is not None and pair.gt_match is not None:
         metrics = matching_metrics(result.pred_match, pair.gt_match)
         record.update({name: (None if math.isnan(value) else value) for name, value in metrics.items()})
@@ -317,7 +319,9 @@ def summarize(records: list[dict]) -> dict[str, float]:
     translation error < 5 % of the object's radius), failed (pairs without a pose),
     precision / accuracy / recall (mean over pairs, NaN where the method has no matches),
     flag_precision / flag_recall (the runtime's success flag: right among the flagged, flagged
-    among the right; NaN for methods without a flag), seconds_median, pairs.
+    among the right; NaN for methods without a flag), seconds_median and seconds_p90 (the
+    slowest 10 % take longer), fast_exit (share of pairs that took the runtime's fast exit; NaN
+    for other methods), pairs.
     """
     predicted = np.array([r["T_pred"] for r in records])
     truth = np.array([r["T_gt"] for r in records])
@@ -339,7 +343,11 @@ def summarize(records: list[dict]) -> dict[str, float]:
             metrics["flag_precision"] = float(right[claimed].mean())
         if right.any():
             metrics["flag_recall"] = float(claimed[right].mean())
-    metrics["seconds_median"] = float(np.median([r["seconds"] for r in records]))
+    seconds = np.array([r["seconds"] for r in records])
+    metrics["seconds_median"] = float(np.median(seconds))
+    metrics["seconds_p90"] = float(np.percentile(seconds, 90))
+    exits = [r["fast_exit"] for r in records if r.get("fast_exit") is not None]
+    metrics["fast_exit"] = float(np.mean(exits)) if exits else float("nan")
     metrics["pairs"] = len(records)
     return metrics
 
@@ -429,10 +437,12 @@ COLUMNS = [
     ("flag P %", "flag_precision", "{:.1f}"),
     ("flag R %", "flag_recall", "{:.1f}"),
     ("ms / pair", "seconds_median", "{:.0f}"),
+    ("ms p90", "seconds_p90", "{:.0f}"),
+    ("fast exit %", "fast_exit", "{:.0f}"),
     ("failed", "failed", "{:d}"),
     ("pairs", "pairs", "{:d}"),
 ]
-PERCENT = {"success", "precision", "accuracy", "recall", "flag_precision", "flag_recall"}
+PERCENT = {"success", "precision", "accuracy", "recall", "flag_precision", "flag_recall", "fast_exit"}
 
 
 def markdown_table(rows: dict[str, dict], label: str = "method") -> str:
@@ -448,7 +458,7 @@ def markdown_table(rows: dict[str, dict], label: str = "method") -> str:
                 continue
             if key in PERCENT:
                 value = 100.0 * value
-            if key == "seconds_median":
+            if key in ("seconds_median", "seconds_p90"):
                 value = 1e3 * value
             cells.append(fmt.format(value))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")

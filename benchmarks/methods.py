@@ -150,6 +150,8 @@ class MethodResult:
             nearest neighbours in descriptor space); None otherwise.
         flagged_success, confidence: the runtime's success flag and confidence (the
             verified methods); None for the others.
+        fast_exit: whether the runtime took the fast exit (the verified methods); None for
+            the others.
     """
 
     transformation: np.ndarray
@@ -158,6 +160,7 @@ class MethodResult:
     pred_match: np.ndarray | None = None
     flagged_success: bool | None = None
     confidence: float | None = None
+    fast_exit: bool | None = None
 
 
 def failed_result(seconds: float) -> MethodResult:
@@ -391,7 +394,10 @@ class MethodRunner:
         result = self.registrar.register_matches(pair, refine=refine, seed=seed)  # a failure is a result
         seconds = match_seconds + time.perf_counter() - start
         failed = result.pose_estimator == "none"  # no pose could be estimated (too few matches)
-        return MethodResult(result.transformation, seconds, failed, pred_match, result.success, result.confidence)
+        fast_exit = bool(result.verification is not None and result.verification.fast_exit)
+        return MethodResult(
+            result.transformation, seconds, failed, pred_match, result.success, result.confidence, fast_exit
+        )
 
     def _fpfh(self, source, target, normalization: PairNormalization, seed) -> dict[str, MethodResult]:
         start = time.perf_counter()
