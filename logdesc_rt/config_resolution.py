@@ -73,6 +73,7 @@ class ConfigResolver:
         refine=UNSET,
         max_correspondence_distance: float | None = None,
         seed: int | None = None,
+        thorough: bool | None = None,
     ) -> RuntimeConfig:
         """The configuration of one call: ``config`` over ``base`` (:meth:`given`), resolved,
         with the keyword overrides applied (:func:`with_overrides`)."""
@@ -82,6 +83,7 @@ class ConfigResolver:
             refine=refine,
             max_correspondence_distance=max_correspondence_distance,
             seed=seed,
+            thorough=thorough,
         )
 
 
@@ -92,13 +94,20 @@ def with_overrides(
     refine=UNSET,
     max_correspondence_distance: float | None = None,
     seed: int | None = None,
+    thorough: bool | None = None,
 ) -> RuntimeConfig:
     """``config`` with :meth:`~logdesc_rt.registration.Registrar.register`'s keyword arguments
-    applied (None / UNSET: unchanged).
+    applied (None / UNSET: unchanged; ``thorough=True`` removes the fast exit, so that every
+    candidate is verified).
 
     Raises:
         ValueError: an unknown estimator or refinement, a distance <= 0, a bad seed.
     """
+    if thorough and config.verification is not None and config.verification.fast_exit:
+        config = dataclasses.replace(
+            config,
+            verification=dataclasses.replace(config.verification, exit_weights=(), exit_bias=0.0, exit_threshold=1.0),
+        )
     if estimator is not None:
         if estimator not in POSE_ESTIMATORS:
             raise ValueError(f"estimator {estimator!r}: expected one of {POSE_ESTIMATORS}")

@@ -119,6 +119,7 @@ class Registrar:
         init=None,
         config: RuntimeConfig | None = None,
         progress: Callable[[str], None] | None = None,
+        thorough: bool | None = None,
     ) -> RegistrationResult:
         """Estimate the rigid transform that maps ``source`` onto ``target``, and judge it.
 
@@ -146,6 +147,8 @@ class Registrar:
                 the keyword arguments above override it.
             progress: optional callable, called with a short message as each stage starts
                 (the command line prints them on stderr).
+            thorough: True verifies every candidate pose, also when the fast exit is sure of
+                the first one (:mod:`logdesc_rt.verification`): slower, for a second opinion.
 
         Returns:
             :class:`RegistrationResult`; check ``success`` (or ``confidence``) before using it.
@@ -164,6 +167,7 @@ class Registrar:
             refine=refine,
             max_correspondence_distance=max_correspondence_distance,
             seed=seed,
+            thorough=thorough,
         )
         initial = None if init is None else check_rigid_transformation(init, name="init")
         report = progress if progress is not None else (lambda message: None)
@@ -181,6 +185,7 @@ class Registrar:
         seed: int | None = None,
         init=None,
         progress: Callable[[str], None] | None = None,
+        thorough: bool | None = None,
     ) -> RegistrationResult:
         """:meth:`register` from a pair already matched (:meth:`match`), without running the
         networks again: candidate poses, verification, the success flag, optional ICP.
@@ -195,6 +200,7 @@ class Registrar:
             refine=refine,
             max_correspondence_distance=max_correspondence_distance,
             seed=seed,
+            thorough=thorough,
         )
         initial = None if init is None else check_rigid_transformation(init, name="init")
         return register_matched(pair, config, initial, progress)
@@ -207,6 +213,7 @@ class Registrar:
         refine=UNSET,
         max_correspondence_distance: float | None = None,
         seed: int | None = None,
+        thorough: bool | None = None,
     ) -> RuntimeConfig:
         """The configuration one :meth:`register` call runs with: ``config`` (default: the
         Registrar's; a dict applies over it) with the keyword overrides applied, resolved.
@@ -216,7 +223,7 @@ class Registrar:
         """
         return self.resolver.for_call(
             config, self.config, estimator=estimator, refine=refine,
-            max_correspondence_distance=max_correspondence_distance, seed=seed,
+            max_correspondence_distance=max_correspondence_distance, seed=seed, thorough=thorough,
         )
 
     def match(self, source, target) -> PairMatches:
@@ -371,7 +378,7 @@ def register(source, target, **options) -> RegistrationResult:
     """Register two clouds with the bundled model (loaded once, reused).
 
     ``options`` are those of :meth:`Registrar.register` (estimator, refine,
-    max_correspondence_distance, seed, init, config, progress); ``config`` may set every
+    max_correspondence_distance, seed, init, config, progress, thorough); ``config`` may set every
     runtime stage, the working size and matching included. For another model or thread count,
     build a :class:`Registrar`. Check ``result.success`` before using the pose.
     """

@@ -873,3 +873,15 @@ def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_pe
     for row in rows:
         row["verified_right"] = row["unrefined_right"] = bool(rng.random() < 0.5)
     assert not calibrate_success.calibrate_exit(rows, VerificationConfig()).fast_exit
+
+
+def test_thorough_verifies_every_candidate_even_where_the_fast_exit_is_sure(registrar, demo_pair):
+    """register(thorough=True) is the full verification, one keyword away: the same result as a
+    calibration without an exit model."""
+    config = _exit_config(0.8)
+    assert registrar.register(demo_pair.source, demo_pair.target, config=config).verification.fast_exit
+    thorough = registrar.register(demo_pair.source, demo_pair.target, config=config, thorough=True)
+    full = registrar.register(demo_pair.source, demo_pair.target)
+    assert not thorough.verification.fast_exit
+    assert np.array_equal(thorough.transformation, full.transformation) and thorough.confidence == full.confidence
+    assert not thorough.config.verification.fast_exit

@@ -239,6 +239,8 @@ def _register_options(args) -> dict:
     }
     if args.refine is not None:
         options["refine"] = refine
+    if getattr(args, "thorough", False):
+        options["thorough"] = True
     return options
 
 
@@ -697,6 +699,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     register.add_argument("source", type=Path, help=f"the cloud to move: a point-cloud file ({formats}), any unit")
+    register.add_argument("--thorough", action="store_true",
+                          help="verify every candidate pose, also when the fast exit is sure of the first one")
     register.add_argument("target", type=Path, help="the cloud to align it to, same unit")
     register.add_argument("--json", action="store_true",
                           help="print one JSON object: transformation (4x4 list), success, confidence, fitness, "
