@@ -18,6 +18,7 @@ from logdesc_rt.errors import (
     TooFewPointsError,
 )
 from logdesc_rt.geometry import knn_excluding_self, pca_features
+from logdesc_rt.geometry.kernels import neighbourhoods
 
 from .shapes import fibonacci_sphere, random_rigid_transform
 
@@ -175,3 +176,109 @@ def test_defaults_are_the_shipped_geometry_and_old_files_keep_the_papers():
     legacy = {key: value for key, value in GeometryConfig().to_dict().items() if key not in ("edge_layout", "normals")}
     assert GeometryConfig.from_stored(legacy) == PAPER_GEOMETRY
     assert GeometryConfig.from_stored({**legacy, "edge_layout": "chiral"}).edge_layout == "chiral"
+
+
+# -- the compiled neighbourhoods against a brute-force reference --------------------------------
+
+
+def _brute_force_neighbourhoods(points, radius, max_neighbours, min_neighbours, k):
+    """Sizes, means, covariances and umbrella neighbours from the full distance matrix."""
+    count = len(points)
+    squared = np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=2)
+    sizes, means, covariances, umbrella = [], [], [], []
+    for row in range(count):
+        others = np.r_[0:row, row + 1 : count]
+        # Nearest first; among exact ties, the lowest index first; the point itself first of all.
+        order = np.r_[row, others[np.lexsort((others, squared[row, others]))]]
+        within = int(np.sum(np.sqrt(squared[row]) < radius))
+        size = min(max_neighbours, max(within, min_neighbours), count)
+        members = points[order[:size]]
+        sizes.append(size)
+        means.append(members.mean(axis=0))
+        covariances.append((members - members.mean(axis=0)).T @ (members - members.mean(axis=0)) / size)
+        umbrella.append(order[1 : k + 1])
+    return np.array(sizes), np.array(means), np.array(covariances), np.array(umbrella, dtype=np.int64)
+
+
+def _clouds_with_hard_cases():
+    rng = np.random.default_rng(7)
+    surface = fibonacci_sphere(300) * (1.0 + 0.1 * rng.normal(size=(300, 1)))
+    duplicated = np.concatenate([surface[:120], surface[:120], surface[:40]])  # 2 and 3 copies
+    stray = np.concatenate([surface[:250], [[60.0, -40.0, 25.0]]])  # a far stray point
+    sparse = rng.normal(size=(80, 3)) * 3.0  # most points have no neighbour within the radius
+    dense = rng.normal(size=(600, 3)) * 0.2  # far more than max_neighbours within the radius
+    return {"surface": surface, "duplicated": duplicated, "stray": stray, "sparse": sparse, "dense": dense}
+
+
+@pytest.mark.parametrize("name", ["surface", "duplicated", "stray", "sparse", "dense"])
+@pytest.mark.parametrize(("radius", "max_neighbours", "min_neighbours", "k"), [(0.3, 128, 8, 30), (0.2, 20, 12, 10)])
+def test_neighbourhoods_equal_a_brute_force_reference(name, radius, max_neighbours, min_neighbours, k):
+    points = _clouds_with_hard_cases()[name]
+    sizes, means, covariances, umbrella = neighbourhoods(points, radius, max_neighbours, min_neighbours, k)
+    expected = _brute_force_neighbourhoods(points, radius, max_neighbours, min_neighbours, k)
+    np.testing.assert_array_equal(sizes, expected[0])
+    np.testing.assert_allclose(means, expected[1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(covariances, expected[2], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(umbrella, expected[3])
+    assert not np.any(umbrella == np.arange(len(points))[:, None])
+
+
+def test_neighbourhoods_of_more_duplicates_than_neighbours():
+    # Every point seven times, k = 4: the umbrella is four of the point's copies, never itself.
+    points = np.repeat(np.random.default_rng(2).normal(size=(30, 3)), 7, axis=0)
+    _, _, _, umbrella = neighbourhoods(points, 0.3, 16, 4, 4)
+    copies = np.arange(len(points)) // 7
+    assert np.all(copies[umbrella] == copies[:, None])
+    np.testing.assert_array_equal(umbrella, _brute_force_neighbourhoods(points, 0.3, 16, 4, 4)[3])
+
+
+def test_geometry_neighbours_are_the_nearest_in_order():
+    rng = np.random.default_rng(11)
+    points = fibonacci_sphere(500) + rng.normal(scale=0.01, size=(500, 3))
+    geometry = compute_geometry(points)
+    squared = np.sum((points[:, None] - points[None]) ** 2, axis=2)
+    np.fill_diagonal(squared, np.inf)
+    np.testing.assert_array_equal(geometry.neighbour_index, np.argsort(squared, axis=1)[:, :30])
+    sizes = geometry.pca.neighbour_count
+    np.fill_diagonal(squared, 0.0)
+    within = np.sum(np.sqrt(squared) < 0.3, axis=1)
+    np.testing.assert_array_equal(sizes, np.clip(within, 8, 128))
+
+
+@pytest.mark.parametrize("user_cache_writable", [True, False])
+def test_kernels_work_from_a_package_directory_that_cannot_be_written(tmp_path, user_cache_writable):
+    """The kernels' disk cache goes to the user's cache directory when the package's cannot be
+    written; with no writable cache directory at all, they compile in the process and run."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import logdesc_rt
+
+    site = tmp_path / "site"
+    shutil.copytree(Path(logdesc_rt.__file__).parent, site / "logdesc_rt", ignore=shutil.ignore_patterns("__pycache__"))
+    # A file named __pycache__ in every package folder: no cache can be made there, even by root.
+    for init in (site / "logdesc_rt").rglob("__init__.py"):
+        (init.parent / "__pycache__").write_text("")
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    user_cache = tmp_path / "user_cache" if user_cache_writable else blocked / "cache"
+    env = {key: value for key, value in os.environ.items() if not key.startswith("NUMBA_")}
+    env.update(PYTHONPATH=str(site), XDG_CACHE_HOME=str(user_cache), HOME=str(blocked / "home"))
+    script = (
+        "import numpy as np, logdesc_rt\n"
+        "from logdesc_rt import compute_geometry\n"
+        "from logdesc_rt.sampling import farthest_point_sampling\n"
+        f"assert logdesc_rt.__file__.startswith({str(site)!r})\n"
+        "points = np.random.default_rng(0).normal(size=(200, 3))\n"
+        "assert compute_geometry(points).edges.shape == (200, 30, 13)\n"
+        "assert len(set(farthest_point_sampling(points, 50).tolist())) == 50\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr
+    cached = list(user_cache.rglob("*.nbi")) if user_cache_writable else []
+    assert bool(cached) == user_cache_writable

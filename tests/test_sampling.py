@@ -102,6 +102,47 @@ def test_fps_equals_the_greedy_definition_at_working_size():
         nearest_chosen = np.minimum(nearest_chosen, np.linalg.norm(points - points[index], axis=1))
 
 
+def _reference_fps_with_ties(points: np.ndarray, count: int, start: int) -> list[int]:
+    """FPS with the documented tie rule, from scratch at every pick: the squared distance
+    (x - x_c)**2 + (y - y_c)**2 + (z - z_c)**2 to the nearest chosen point; the lowest index
+    within FPS_TIE_TOLERANCE x (the largest squared norm) of the largest such distance."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    tolerance = FPS_TIE_TOLERANCE * np.max(x * x + y * y + z * z)
+    chosen = [start]
+    while len(chosen) < count:
+        nearest = np.min([(x - x[c]) ** 2 + (y - y[c]) ** 2 + (z - z[c]) ** 2 for c in chosen], axis=0)
+        nearest[chosen] = -np.inf
+        chosen.append(int(np.flatnonzero(nearest >= nearest.max() - tolerance)[0]))
+    return chosen
+
+
+def _fps_clouds() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(8)
+    axis = np.linspace(-1.0, 1.0, 6)
+    lattice = np.stack(np.meshgrid(axis, axis, axis[:3]), axis=-1).reshape(-1, 3)  # exact ties everywhere
+    noisy = rng.normal(size=(150, 3))
+    duplicated = np.concatenate([noisy[:60], noisy[:60], noisy[:10]])
+    stray = np.concatenate([noisy[:90], [[40.0, 0.0, -30.0]]])
+    return {"lattice": lattice, "noisy": noisy, "duplicated": duplicated, "stray": stray}
+
+
+@pytest.mark.parametrize("name", ["lattice", "noisy", "duplicated", "stray"])
+def test_fps_equals_the_reference_with_its_tie_rule(name):
+    from logdesc_rt.sampling import _farthest_point_indices_from, _power_of_two_scale
+
+    points = _fps_clouds()[name]
+    centred = points - points.mean(axis=0)
+    centred = centred / _power_of_two_scale(centred)
+    starts = np.array([0, 3, len(points) - 1, 3])
+    for count in (1, 40, len(points)):
+        runs = _farthest_point_indices_from(centred, count, starts)
+        assert runs.shape == (len(starts), count) and runs.dtype == np.int64
+        for row, start in enumerate(starts):
+            assert runs[row].tolist() == _reference_fps_with_ties(centred, count, int(start))
+    default = farthest_point_sampling(points, 40)
+    assert default.tolist() == _reference_fps_with_ties(centred, 40, int(default[0]))
+
+
 def test_fps_large_coordinates():
     points = np.array([[1e15, 0, 0], [-1e15, 0, 0], [0, 0, 0], [0, 1e15, 0]])
     assert sorted(farthest_point_sampling(points, 4).tolist()) == [0, 1, 2, 3]

@@ -16,12 +16,13 @@ from .invariant_features import (
     CHIRAL_EDGE_CHANNELS,
     INVARIANT_EDGE_CHANNELS,
     chiral_edge_channels,
-    edge_vectors,
     invariant_edge_features,
+    invariant_edge_tensor,
 )
 from .neighbours import drop_self, knn_excluding_self, nearest_neighbours
 from .normals import umbrella_normals
-from .pca import PcaFeatures, pca_features
+from .kernels import neighbourhoods
+from .pca import PcaFeatures, pca_features, pca_from_covariance
 
 __all__ = [
     "EDGE_FEATURE_CHANNELS",
@@ -76,28 +77,30 @@ def compute_geometry(points, config: GeometryConfig = GeometryConfig()) -> Point
     """
     points = as_points(points, min_points=config.min_points)
     check_not_degenerate(points)
-    # One kNN query serves both neighbourhoods (each is a prefix of the sorted list).
-    neighbours = nearest_neighbours(
-        points, max(config.pca_max_neighbours, config.umbrella_neighbours + 1)
+    count, mean, covariance, neighbour_index = neighbourhoods(
+        points,
+        config.pca_radius,
+        config.pca_max_neighbours,
+        config.pca_min_neighbours,
+        config.umbrella_neighbours,
     )
-    pca = pca_features(
-        points, config.pca_radius, config.pca_max_neighbours, config.pca_min_neighbours, neighbours
-    )
-    neighbour_index = drop_self(neighbours[1], config.umbrella_neighbours)
+    pca = pca_from_covariance(points, count, mean, covariance)
     if config.normals == "pca":
         normals = pca.lrf[:, :, 2].copy()
     else:
         normals = umbrella_normals(points, neighbour_index, pca.lrf, config.umbrella_area_temperature)
     shape_features = np.stack([pca.anisotropy, pca.planarity, pca.omnivariance], axis=1)
     if config.edge_layout in ("invariant", "chiral"):
-        vectors = edge_vectors(points, normals, neighbour_index)
-        edges = invariant_edge_features(
-            points, shape_features, normals, neighbour_index, config.pca_radius, vectors
+        chiral = config.edge_layout == "chiral"
+        edges = invariant_edge_tensor(
+            points,
+            shape_features,
+            normals,
+            pca.lrf if chiral else None,
+            (pca.anisotropy - pca.planarity) * pca.planarity if chiral else None,
+            neighbour_index,
+            config.pca_radius,
         )
-        if config.edge_layout == "chiral":
-            gate = (pca.anisotropy - pca.planarity) * pca.planarity
-            chiral = chiral_edge_channels(points, normals, pca.lrf, gate, neighbour_index, vectors)
-            edges = np.concatenate([edges, chiral], axis=2)
     else:
         edges = edge_features(points, shape_features, pca.lrf, normals, neighbour_index)
     return PointGeometry(

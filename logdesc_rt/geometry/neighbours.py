@@ -1,8 +1,7 @@
-"""k-nearest-neighbour queries (pykdtree), shared by every geometric step.
+"""k-nearest-neighbour queries of a cloud on itself (pykdtree).
 
-One query serves the whole geometry of a cloud: the PCA neighbourhood (up to 128 neighbours
-within a radius) and the umbrella neighbourhood (the 30 nearest) are both prefixes of the same
-sorted neighbour list.
+General-purpose helpers; :func:`~logdesc_rt.geometry.compute_geometry` finds its
+neighbourhoods with :func:`~logdesc_rt.geometry.kernels.neighbourhoods` instead.
 """
 
 from __future__ import annotations

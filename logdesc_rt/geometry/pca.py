@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .neighbours import nearest_neighbours
+from .kernels import neighbourhoods
 
 # Neighbourhoods whose largest eigenvalue is below this (squared network units) carry no shape:
 # a point alone within the radius, or only exact duplicates around it.
@@ -52,7 +52,6 @@ def pca_features(
     radius: float,
     max_neighbours: int,
     min_neighbours: int = 8,
-    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PcaFeatures:
     """Covariance features of every point from its neighbours within ``radius``.
 
@@ -61,30 +60,19 @@ def pca_features(
         radius: neighbourhood radius, same units as ``points`` (strictly closer points count).
         max_neighbours: at most this many nearest neighbours (the point included).
         min_neighbours: the nearest this-many points are used even beyond the radius.
-        neighbours: optional (distance, index) from
-            :func:`~logdesc_rt.geometry.neighbours.nearest_neighbours` with at least
-            ``max_neighbours`` columns (or N), to share one query between steps.
 
     Returns:
         :class:`PcaFeatures`. Points whose neighbourhood has no extent (only duplicates) get
         A = P = O = 0 and the identity LRF; all other values follow the formulas above.
     """
-    if neighbours is None:
-        neighbours = nearest_neighbours(points, max_neighbours)
-    distance, index = neighbours[0][:, :max_neighbours], neighbours[1][:, :max_neighbours]
-    within = distance < radius
-    within[:, :min_neighbours] = True  # the point itself and its nearest, whatever the radius
-    weights = within.astype(np.float64)
-    count = weights.sum(axis=1)
+    return pca_from_covariance(points, *neighbourhoods(points, radius, max_neighbours, min_neighbours, 0)[:3])
 
-    # Batched (N, 1, K) @ (N, K, 3) products: much faster than einsum for these shapes.
-    neighbour_points = np.take(points, index, axis=0)  # (N, K, 3); np.take: ~5x faster than points[index]
-    mean = (weights[:, None, :] @ neighbour_points)[:, 0] / count[:, None]
-    centred = neighbour_points - mean[:, None, :]
-    # Weights are 0 or 1, so weighting one factor is weighting both (the same values); the
-    # weighted factor is built (N, 3, K) contiguous, which the batched product reads faster.
-    covariance = (centred.transpose(0, 2, 1) * weights[:, None, :]) @ centred / count[:, None, None]
 
+def pca_from_covariance(
+    points: np.ndarray, count: np.ndarray, mean: np.ndarray, covariance: np.ndarray
+) -> PcaFeatures:
+    """:class:`PcaFeatures` of (N, 3) points from their neighbourhoods' (N,) sizes, (N, 3)
+    means and (N, 3, 3) covariances (:func:`~logdesc_rt.geometry.kernels.neighbourhoods`)."""
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)  # ascending
     eigenvalues = np.clip(eigenvalues, 0.0, None)
     l3, l2, l1 = eigenvalues[:, 0], eigenvalues[:, 1], eigenvalues[:, 2]
@@ -108,7 +96,7 @@ def pca_features(
         planarity=planarity,
         omnivariance=omnivariance,
         lrf=lrf,
-        neighbour_count=count.astype(np.int64),
+        neighbour_count=count,
     )
 
 
