@@ -183,9 +183,8 @@ def coarse_pose(
     The confidence-weighted least-squares pose of the learned matches that the hypothesis'
     verified pose explains within ``verification.refit_spacings`` target spacings, iterated
     MSAC-style (:func:`~logdesc_rt.pose.svd.refine_on_inliers`). It is a pose from matches,
-    like the estimators': verification's short ICP only chose which matches are inliers. On 450
-    validation pairs it is right more often than the estimator's own pose (354 against 338;
-    ``benchmarks/results/coarse_refit``), most on sparse pairs of separate samples.
+    like the estimators': verification's short ICP only chose which matches are inliers
+    (measured against the estimator's own pose: ``docs/decisions.md``).
 
     Then ``verification.refit_plane_steps`` Gauss-Newton steps of the same matches' point-to-
     plane fit (target normals from a PCA of the working subset; a point-to-point term of

@@ -6,8 +6,8 @@ is a function of distances, of angles between unit vectors that move with the su
 the PCA shape: turning or shifting the cloud leaves the tensor unchanged up to float round-off.
 
 A normal's sign cannot be read from a neighbourhood reliably (two noisy or partial views of
-one surface disagree on it at a quarter of the points with the paper's centroid rule, see
-``benchmarks/geometry_agreement.py``), so no channel depends on it: with n_i, n_m the unit
+one surface disagree on it at a quarter of the points with the paper's centroid rule:
+``docs/decisions.md``), so no channel depends on it: with n_i, n_m the unit
 normals of point i and of its neighbour m, d = x_m - x_i, r = |d| and e = d / r, each channel
 is even in n_i and in n_m separately.
 

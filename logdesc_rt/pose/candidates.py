@@ -159,7 +159,7 @@ def descriptor_candidate_poses(
 
     The matcher's transformer reads both clouds at once; where it settles on a wrong reading
     (a scan's one-sided surfaces, a part of the shape the other cloud lacks), the descriptors'
-    own matches can still hold the true pose (``benchmarks/results/descriptor_candidates/``).
+    own matches can still hold the true pose (``docs/decisions.md``).
 
     Args:
         source_network, target_network: (N, 3) / (M, 3) float64 working subsets, network units.
