@@ -90,7 +90,7 @@ def test_fps_zero_count_and_errors():
 def test_fps_equals_the_greedy_definition_at_working_size():
     """4096 -> 1024 (the runtime's case): every pick is the point farthest from those before.
 
-    Speed is measured in benchmarks/core_stages.py, not asserted here.
+    Speed is measured in benchmarks/latency.py (the subsample stage), not asserted here.
     """
     points = np.random.default_rng(6).normal(size=(4096, 3))
     indices = farthest_point_sampling(points, 1024)
