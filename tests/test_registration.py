@@ -40,7 +40,8 @@ def test_demo_pair_is_registered_within_two_degrees(registrar, demo_pair):
     assert np.all((result.confidences > 0) & (result.confidences <= 1))
     assert 0.5 < result.fitness <= 1.0
     assert {"geometry", "descriptors", "matcher", "matching", "pose", "total"} <= set(result.timings)
-    assert not result.subsampled
+    assert result.subsampled == (len(demo_pair.source) > registrar.max_points)
+    assert result.source_points_used == min(len(demo_pair.source), registrar.max_points)
 
 
 def test_icp_refinement_tightens_the_pose(registrar, demo_pair):

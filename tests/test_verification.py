@@ -11,7 +11,6 @@ from scipy.spatial.transform import Rotation
 
 from logdesc_rt import Registrar
 from logdesc_rt.config import (
-    DEFAULT_WORKING_SIZE,
     VERIFICATION_FEATURES,
     FsrConfig,
     RefinementConfig,
@@ -211,8 +210,9 @@ def test_registrar_and_call_configs_are_used_and_reported(demo_pair):
     call = registrar.register(
         demo_pair.source, demo_pair.target, config=RuntimeConfig(), estimator="svd", refine=None
     )
-    assert call.pose_estimator == "svd" and call.config.subsampling.max_points == DEFAULT_WORKING_SIZE
-    assert call.source_points_used == len(demo_pair.source)
+    working_size = registrar.manifest.points_per_cloud  # a whole RuntimeConfig: the model's working size
+    assert call.pose_estimator == "svd" and call.config.subsampling.max_points == working_size
+    assert call.source_points_used == min(len(demo_pair.source), working_size)
     with pytest.raises(ValueError, match="estimator"):
         registrar.register(demo_pair.source, demo_pair.target, estimator="magic")
 
