@@ -143,7 +143,7 @@ LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (no "core")."""
 LEGACY_VERIFICATION_OFF = {
     "turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0,
-    "refit_plane_steps": 0, "turn_over_spin": False,
+    "refit_plane_steps": 0, "turn_over_spin": False, "exit_weights": [],
 }
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
 filled in alone)."""

@@ -842,7 +842,18 @@ def test_an_exit_model_must_have_one_weight_per_exit_feature():
         VerificationConfig(exit_estimator="magic")
     with pytest.raises(ValueError, match="exit_threshold"):
         VerificationConfig(exit_threshold=1.5)
-    assert not VerificationConfig().fast_exit
+    assert not VerificationConfig(exit_weights=()).fast_exit
+
+
+def test_a_calibration_stored_without_an_exit_model_runs_without_a_fast_exit(tmp_path):
+    """An exit model belongs to the calibration it was fitted with: a manifest's calibration
+    without one never borrows the code's defaults."""
+    from logdesc_rt.network import bundled_model_dir
+
+    runtime = json.loads((bundled_model_dir() / "manifest.json").read_text())["runtime"]
+    for key in ("exit_weights", "exit_bias", "exit_threshold", "exit_estimator"):
+        runtime["verification"].pop(key, None)
+    assert not Registrar(_model_copy(tmp_path, runtime)).config.verification.fast_exit
 
 
 def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_percent_of_the_time():
