@@ -387,3 +387,32 @@ def test_scan_shapes_drawn_by_class_weight_deterministically():
     assert [uniform.scan_shape(key, words) for key, words in keys[:5]] == [key.index % len(names) for key, _ in keys[:5]]
     with pytest.raises(ValueError, match="weighting"):
         PairDataset(shapes, dense=dense, scan_shape_weighting="balanced")
+
+
+@pytest.mark.parametrize("protocol", ["noisy", "partial", "resampled_partial"])
+def test_working_size_cuts_each_cloud_as_register_does_and_labels_from_geometry(protocol):
+    """make_pair(working_size=...): a cloud above the working size is cut to exactly that many
+    points by the runtime's working subset (each cloud on its own), a smaller one is kept whole;
+    the labels are one-to-one and every matched pair lies within a few spacings of its partner
+    under the truth; the same seed, the same pair."""
+    from logdesc_rt.config import NormalizationConfig
+    from logdesc_rt.sampling import working_subset
+
+    shape, rng_words = _shape(), [3, 1]
+    whole = make_pair(shape, protocol, np.random.default_rng(rng_words))
+    cut = make_pair(shape, protocol, np.random.default_rng(rng_words), working_size=512)
+    for cloud, cloud_cut in ((whole.source, cut.source), (whole.target, cut.target)):
+        if len(cloud) > 512:
+            assert len(cloud_cut) == 512
+            np.testing.assert_array_equal(cloud_cut, cloud[working_subset(cloud, 512, "fps", NormalizationConfig())])
+        else:
+            np.testing.assert_array_equal(cloud_cut, cloud)
+    src, tgt = cut.gt_match_src, cut.gt_match_tgt
+    matched = np.flatnonzero(src >= 0)
+    assert len(matched) > 50
+    np.testing.assert_array_equal(tgt[src[matched]], matched)
+    spacing = np.median(np.sort(np.linalg.norm(shape[:, None] - shape[None], axis=-1), axis=1)[:, 1])
+    assert _residuals(cut.source, cut.target, cut.T_gt, src).max() <= 3 * spacing + 2 * NOISE_BOUND
+    again = make_pair(shape, protocol, np.random.default_rng(rng_words), working_size=512)
+    np.testing.assert_array_equal(again.source, cut.source)
+    np.testing.assert_array_equal(again.gt_match_src, cut.gt_match_src)
