@@ -579,7 +579,7 @@ def calibrate(rows: list[dict], base):
 def exit_rows(rows: list[dict], estimator: str) -> list[dict]:
     """Per pair, the hypothesis the fast exit scores: the one ``estimator`` leads (it is
     refined and its features, but for agreement and margin, are those of the fast exit)."""
-    return [row for row in rows if row["estimators"][0] == estimator and row["refined"]]
+    return [row for row in rows if row.get("estimators", [None])[0] == estimator and row.get("refined", False)]
 
 
 def exit_features(row: dict) -> np.ndarray:

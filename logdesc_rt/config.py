@@ -303,25 +303,34 @@ class VerificationConfig(_DictMixin):
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
     weights: tuple[float, ...] = (
-        0.20239509558603222,
-        2.2617376431978626,
-        -8.717925585303597,
-        0.8113378138167461,
-        1.7975906247863565,
-        4.051900255587809,
-        -2.32894834319157,
-        1.020042052213536,
-        2.2711328741575576,
-        -1.0239342838398504,
+        0.5304082377961339,
+        2.2461832090538096,
+        -8.249354701647452,
+        0.9482968623095877,
+        2.0062665186790394,
+        4.280783373450282,
+        -1.9963474993599246,
+        0.9254894152019564,
+        2.1687422792560676,
+        -0.9530415647908403,
     )
-    bias: float = 1.5206004765504362
-    success_threshold: float = 0.6175
+    bias: float = 0.49155825742918124
+    success_threshold: float = 0.6491
     seed: int = 0
     candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k", "core")
     exit_estimator: str = "fsr"
-    exit_weights: tuple[float, ...] = ()
-    exit_bias: float = 0.0
-    exit_threshold: float = 1.0
+    exit_weights: tuple[float, ...] = (
+        0.07507903351686297,
+        2.5172688637212683,
+        -8.68821588024252,
+        0.6975824184418756,
+        1.65182925186956,
+        4.706920279569138,
+        -0.07415770085811835,
+        -1.4065811875695575,
+    )
+    exit_bias: float = 0.44355866525724963
+    exit_threshold: float = 0.7788
 
     @property
     def fast_exit(self) -> bool:
@@ -514,7 +523,7 @@ class RansacConfig(_DictMixin):
 
 
 SUBSAMPLING_METHODS = ("fps", "voxel")
-DEFAULT_WORKING_SIZE = 1024
+DEFAULT_WORKING_SIZE = 512
 """The bundled model's working size (points per cloud its networks see), for code that has no
 model at hand (the CLI reads its inputs before loading one; a checkpoint without the value);
 tests hold it equal to the bundled manifest's."""

@@ -67,7 +67,7 @@ def test_the_candidate_set_is_the_configs(registrar, demo_pair):
     """VerificationConfig.candidates (on the matcher's matches) and .descriptor_consensus (on the
     descriptors' own) decide which estimators are verified: with "core" among them, its pose is
     among the hypotheses; an unknown name is refused."""
-    default = registrar.register(demo_pair.source, demo_pair.target)
+    default = registrar.register(demo_pair.source, demo_pair.target, thorough=True)
     names = {name for hypothesis in default.verification.hypotheses for name in hypothesis.estimators}
     # The second look's names: the turn-overs and each candidate on the unexplained matches.
     names = {name.removeprefix(UNEXPLAINED_PREFIX) for name in names if name != TURNED_OVER}
@@ -76,7 +76,9 @@ def test_the_candidate_set_is_the_configs(registrar, demo_pair):
     assert on_matches <= set(registrar.config.verification.candidates)
     assert on_descriptors <= set(registrar.config.verification.descriptor_consensus)
     candidates = ("fsr", "ransac", "svd", "top_k", "core")
-    widened = registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"candidates": candidates}})
+    widened = registrar.register(
+        demo_pair.source, demo_pair.target, config={"verification": {"candidates": candidates}}, thorough=True
+    )
     assert "core" in {name for hypothesis in widened.verification.hypotheses for name in hypothesis.estimators}
     with pytest.raises(ValueError, match="candidates"):
         registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"candidates": ["magic"]}})
@@ -169,13 +171,14 @@ def test_voxel_subsampling_keeps_the_working_size():
     dense = np.repeat(pair.source, 5, axis=0) + rng.normal(scale=0.003, size=(5 * len(pair.source), 3))
     result = registrar.register(dense, pair.target)
     assert result.subsampled and result.source_points_used == registrar.max_points
-    assert result.target_points_used == len(pair.target)
+    assert result.target_points_used == min(len(pair.target), registrar.max_points)
     assert rotation_error_deg(result.rotation, pair.true_transformation[:3, :3]) < 3.0
 
 
 def test_describe_returns_unit_descriptors(registrar, demo_pair):
     described = registrar.describe(demo_pair.source)
-    assert described.descriptors.shape == (len(demo_pair.source), registrar.manifest.descriptor_dim)
+    count = min(len(demo_pair.source), registrar.max_points)  # the working subset of a larger cloud
+    assert described.descriptors.shape == (count, registrar.manifest.descriptor_dim) == (len(described.indices), 96)
     assert np.allclose(np.linalg.norm(described.descriptors, axis=1), 1.0, atol=1e-4)
 
 

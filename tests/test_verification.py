@@ -160,7 +160,9 @@ def _model_copy(tmp_path, runtime: dict):
 def test_the_models_runtime_defaults_come_from_its_manifest(tmp_path, demo_pair):
     """A model's manifest carries its runtime defaults (its success-flag calibration among
     them); a dict overrides them key by key, a RuntimeConfig keeps the model's verification."""
-    model = _model_copy(tmp_path, {"verification": {"success_threshold": 0.999999}, "fsr": {"iterations": 7}})
+    # No exit model: the flag's threshold alone decides.
+    model = _model_copy(tmp_path, {"verification": {"success_threshold": 0.999999, "exit_weights": []},
+                                   "fsr": {"iterations": 7}})
     registrar = Registrar(model)
     assert registrar.config.verification.success_threshold == 0.999999
     assert registrar.config.fsr.iterations == 7
@@ -442,11 +444,12 @@ def test_the_second_consensus_finds_the_pose_the_outvoted_matches_agree_on():
 def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
     """register() scores the second look's hypotheses as the calibration did, and the config
     turns each part off."""
-    full = registrar.register(demo_pair.source, demo_pair.target)
+    full = registrar.register(demo_pair.source, demo_pair.target, thorough=True)
     names = {name for h in full.verification.hypotheses for name in h.estimators}
     assert "turned_over" in names
     off = registrar.register(
-        demo_pair.source, demo_pair.target, config={"verification": {"turn_over_axes": 0, "second_consensus": []}}
+        demo_pair.source, demo_pair.target, config={"verification": {"turn_over_axes": 0, "second_consensus": []}},
+        thorough=True,
     )
     names = {name for h in off.verification.hypotheses for name in h.estimators}
     assert "turned_over" not in names and not any(name.startswith("unexplained_") for name in names)
@@ -601,10 +604,11 @@ def test_the_runtime_scores_the_descriptor_candidates_when_configured(registrar,
         return {name for h in result.verification.hypotheses for name in h.estimators}
 
     on = registrar.register(
-        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": ["ransac"]}}
+        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": ["ransac"]}},
+        thorough=True,
     )
     off = registrar.register(
-        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": []}}
+        demo_pair.source, demo_pair.target, config={"verification": {"descriptor_consensus": []}}, thorough=True
     )
     assert "descriptor_ransac" in names(on) and not any(name.startswith("descriptor_") for name in names(off))
 
@@ -808,7 +812,7 @@ def test_a_sure_pair_takes_the_fast_exit_and_an_unsure_one_gets_the_full_verific
     confidence), so the full path is unchanged by the attempt."""
     from logdesc_rt.metrics import rotation_error_deg
 
-    full = registrar.register(demo_pair.source, demo_pair.target)
+    full = registrar.register(demo_pair.source, demo_pair.target, thorough=True)
     assert not full.verification.fast_exit and len(full.verification.hypotheses) > 1
 
     fast = registrar.register(demo_pair.source, demo_pair.target, config=_exit_config(0.8))
@@ -892,7 +896,7 @@ def test_thorough_verifies_every_candidate_even_where_the_fast_exit_is_sure(regi
     config = _exit_config(0.8)
     assert registrar.register(demo_pair.source, demo_pair.target, config=config).verification.fast_exit
     thorough = registrar.register(demo_pair.source, demo_pair.target, config=config, thorough=True)
-    full = registrar.register(demo_pair.source, demo_pair.target)
+    full = registrar.register(demo_pair.source, demo_pair.target, config={"verification": {"exit_weights": []}})
     assert not thorough.verification.fast_exit
     assert np.array_equal(thorough.transformation, full.transformation) and thorough.confidence == full.confidence
     assert not thorough.config.verification.fast_exit
