@@ -175,7 +175,7 @@ def latency_row(found: tuple[str, dict] | None) -> list[dict]:
                  if "kiss" in key.lower()), None)
     ms = lambda value: MISSING if number(value) is None else f"{value:.0f}"  # noqa: E731
     return [{
-        "label": f"One real Bunny scan pair at {LATENCY_SIZE} points per cloud (time only)", "source": name,
+        "label": f"A Bunny scan and its moved noisy copy, {LATENCY_SIZE} points per cloud (time only)", "source": name,
         "pairs": "1", "ours": MISSING, "open3d": MISSING, "kiss": MISSING,
         "ours_ms": ms(ours.get("median_ms")), "open3d_ms": ms(peer.get("median_ms")),
         "kiss_ms": ms(first_median_ms(kiss)), "has_kiss": kiss is not None,
