@@ -2,8 +2,10 @@
 pose. The runtime (:meth:`Registrar.register`), training's validation and
 ``training/evaluate.py`` all read their poses here.
 
-    mutual matches -> candidate poses (:mod:`logdesc_rt.pose.candidates`, network units, mapped
-    back to the user frame) -> verification on the full clouds (:class:`PoseVerifier`: the best
+    mutual matches -> the fast exit (the exit estimator's pose alone, refined and scored; kept
+    when the calibration's exit model is sure) -> else candidate poses
+    (:mod:`logdesc_rt.pose.candidates`, network units, mapped back to the user frame) ->
+    verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
     each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
     re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP ->
@@ -42,7 +44,9 @@ def register_matched(
 ) -> RegistrationResult:
     """The result of a matched pair: candidate poses from its matches (and ``initial``),
     verified on the full clouds, the best (or the configured estimator's) kept, refined if
-    the config asks, judged.
+    the config asks, judged. With ``estimator="auto"``, no ``initial`` and an exit model in the
+    calibration, the exit estimator's pose is verified alone first and kept when the exit
+    model is sure (:meth:`~logdesc_rt.verification.PoseVerifier.fast_exit`).
 
     Args:
         pair: the matches and the clouds (:meth:`Registrar.match`, or :func:`pair_from_scores`).
