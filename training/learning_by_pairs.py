@@ -2,14 +2,12 @@
 
 Usage (from the repository root)::
 
-    python -m training.learning_by_pairs \
-        training/checkpoints/v3_cpu_log.jsonl training/checkpoints/small_h100_v2_log.jsonl \
-        --labels v3 v2 --since-step 0 2475 --bin 16000 --out training/results/learning_by_pairs.md
+    python -m training.learning_by_pairs RUN_A/log.jsonl RUN_B/log.jsonl \
+        --labels a b --since-step 0 2475 --bin 16000 --out runs/learning_by_pairs.md
 
 Why: a run that trails another on validation may be a worse model or just a younger one.
-Counting pairs from where each run's task began (``--since-step``: small-h100-v2's turned
-pairs began at its step 2475, when it was fine-tuned from v1 with ``--any-orientation``) and
-putting the assignment NLL of the same protocol side by side tells the two apart: equal
+Counting pairs from where each run's task began (``--since-step``: e.g. the step at which a
+run was fine-tuned onto a new task) and putting the assignment NLL of the same protocol side by side tells the two apart: equal
 losses at equal pairs say the younger run is on the same path, only earlier on it.
 
 The NLL is each run's own logged training loss on its own random pairs (``training.train``

@@ -1,9 +1,9 @@
 """Reference only: the paper's LoGDesc architecture in PyTorch (the descriptor with a 3D rotary
 encoding of absolute positions, RoCNet's normal-angle transformer).
 
-It ships nothing since v3 replaced it: it is kept to load and evaluate the small-h100-v2
-checkpoint (``training/checkpoints/small_h100_v2.pt``, preset ``small``) and for the contrast
-tests that show what v3's invariance by construction changes (``tests/test_invariance.py``:
+No bundled model uses it: it is kept to load and evaluate checkpoints of the paper's
+architecture (presets ``small`` and ``paper``) and for the contrast tests that show what the
+invariant network's invariance by construction changes (``tests/test_invariance.py``:
 these networks' outputs change when a cloud turns). New work goes to
 :mod:`training.invariant_model`. :class:`training.model.LoGDescMatcher` builds these networks
 for ``config.architecture == "logdesc"``.
