@@ -7,7 +7,8 @@ Usage (from the repository root)::
 
 Why: a run that trails another on validation may be a worse model or just a younger one.
 Counting pairs from where each run's task began (``--since-step``: e.g. the step at which a
-run was fine-tuned onto a new task) and putting the assignment NLL of the same protocol side by side tells the two apart: equal
+run was fine-tuned onto a new task) and putting the assignment NLL of the same protocol side by
+side tells the two apart: equal
 losses at equal pairs say the younger run is on the same path, only earlier on it.
 
 The NLL is each run's own logged training loss on its own random pairs (``training.train``
