@@ -282,3 +282,32 @@ def test_kernels_work_from_a_package_directory_that_cannot_be_written(tmp_path, 
     assert result.returncode == 0, result.stderr
     cached = list(user_cache.rglob("*.nbi")) if user_cache_writable else []
     assert bool(cached) == user_cache_writable
+
+
+def test_the_kernels_cache_goes_to_the_user_directory_not_into_the_package(tmp_path):
+    """A cache written into an installed package outlives ``pip uninstall`` and, left behind in
+    site-packages, shadows a later editable install: the kernels cache in the user's cache
+    directory even where the package directory is writable."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import logdesc_rt
+
+    site = tmp_path / "site"
+    shutil.copytree(Path(logdesc_rt.__file__).parent, site / "logdesc_rt", ignore=shutil.ignore_patterns("__pycache__"))
+    user_cache = tmp_path / "user_cache"
+    env = {key: value for key, value in os.environ.items() if not key.startswith("NUMBA_")}
+    env.update(PYTHONPATH=str(site), XDG_CACHE_HOME=str(user_cache), PYTHONDONTWRITEBYTECODE="1")
+    script = (
+        "import numpy as np\n"
+        "from logdesc_rt import compute_geometry\n"
+        "assert compute_geometry(np.random.default_rng(0).normal(size=(200, 3))).edges.shape == (200, 30, 13)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert list(user_cache.rglob("*.nbi"))
+    assert not list((site / "logdesc_rt").rglob("*.nbi")) and not list((site / "logdesc_rt").rglob("*.nbc"))
