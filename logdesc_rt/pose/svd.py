@@ -96,7 +96,7 @@ def solve_rigid_batch(
         weights = weights / weights.sum(axis=1, keepdims=True)
 
     # Batched matrix products rather than einsum: the same sums; for the verification screen's
-    # few-hundred-point problems session 16 measured 12 ms a pair against einsum's 21.
+    # few-hundred-point problems: about 12 ms a pair against einsum's 21.
     source_centroid = (weights[:, None, :] @ source)[:, 0]
     target_centroid = (weights[:, None, :] @ target)[:, 0]
     source_centred = source - source_centroid[:, None, :]
