@@ -150,19 +150,16 @@ class PairMatches:
         """
         config = self.config if config is None else config
         self._require_matches()
-        if estimators is not None:
-            poses = candidate_poses(
-                *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction,
-                tuple(estimators),
-            )
-            return [(name, self.normalization.pose_to_user_frame(pose)) for name, pose in poses]
-        estimators = config.verification.candidates
-        if config.estimator not in ("auto", *estimators):  # a user's choice outside the model's set
-            estimators = (*estimators, config.estimator)
+        all_candidates = estimators is None
+        if all_candidates:
+            estimators = config.verification.candidates
+            if config.estimator not in ("auto", *estimators):  # a user's choice outside the model's set
+                estimators = (*estimators, config.estimator)
         poses = candidate_poses(
-            *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction, estimators
+            *self.matched_network_points(), config.fsr, config.ransac, config.verification.top_k_fraction,
+            tuple(estimators),
         )
-        if config.verification.descriptor_consensus and self.descriptor_matches is not None:
+        if all_candidates and config.verification.descriptor_consensus and self.descriptor_matches is not None:
             poses += descriptor_candidate_poses(
                 self.source_network, self.target_network, self.descriptor_matches, config.fsr, config.ransac,
                 config.verification.top_k_fraction, config.verification.descriptor_consensus,

@@ -291,17 +291,14 @@ def make_pair(
         source, source_origin = source[source_keep], source_origin[source_keep]
         target, target_origin = target[target_keep], target_origin[target_keep]
 
-    cut = False
-    if working_size is not None:
-        for name in ("source", "target"):
-            cloud, origin = (source, source_origin) if name == "source" else (target, target_origin)
-            if len(cloud) > working_size:
-                keep = _exact_working_subset(cloud, working_size, normalization_config)
-                cloud, origin, cut = cloud[keep], origin[keep], True
-            if name == "source":
-                source, source_origin = cloud, origin
-            else:
-                target, target_origin = cloud, origin
+    cut = working_size is not None and max(len(source), len(target)) > working_size
+    if cut:
+        if len(source) > working_size:
+            source_keep = _exact_working_subset(source, working_size, normalization_config)
+            source, source_origin = source[source_keep], source_origin[source_keep]
+        if len(target) > working_size:
+            target_keep = _exact_working_subset(target, working_size, normalization_config)
+            target, target_origin = target[target_keep], target_origin[target_keep]
 
     if resampled or cut:
         gt_match_src, gt_match_tgt = resampled_correspondences(base, source_origin, target_origin)
