@@ -61,7 +61,8 @@ def register_matched(
     report = report if report is not None else (lambda message: None)
     timings = dict(pair.timings)
     verifier, fast = None, None
-    if config.estimator == "auto" and initial is None and config.verification.fast_exit and len(pair.matches) >= MIN_MATCHES:
+    fast_exit_applies = config.estimator == "auto" and initial is None and config.verification.fast_exit
+    if fast_exit_applies and len(pair.matches) >= MIN_MATCHES:
         # The fast exit (logdesc_rt.verification): one estimator's pose, refined and scored alone.
         exit_estimator = config.verification.exit_estimator
         with timed(timings, "pose"), one_thread_per_caller():
@@ -280,7 +281,8 @@ def _judged_result(
     transformation: np.ndarray, **outcome,
 ) -> RegistrationResult:
     """The result of ``pair`` with its returned ``transformation``: fitness and inlier RMSE on
-    the full target at ``distance`` (over at most ``evaluation_points`` seeded source points), the total time, and what every result says of the pair;
+    the full target at ``distance`` (over at most ``evaluation_points`` seeded source points),
+    the total time, and what every result says of the pair;
     ``outcome`` holds the rest (estimator, refinement, the flag and its reason)."""
     # One thread: a bounded query, which OpenMP's start-up and spin-waits on a small machine slow.
     with timed(timings, "evaluation"), one_thread_per_caller():

@@ -310,7 +310,9 @@ def test_the_bundled_model_registers_a_clean_shape_at_any_relative_rotation(bund
     assert np.linalg.norm(result.translation - expected_translation) < 0.02 * np.ptp(shape, axis=0).max()
 
 
-def _assert_the_bundled_model_tells_apart_from_its_mirror_image(bundled_registrar, shape: np.ndarray, share: float) -> None:
+def _assert_the_bundled_model_tells_apart_from_its_mirror_image(
+    bundled_registrar, shape: np.ndarray, share: float
+) -> None:
     if bundled_registrar.manifest.geometry.edge_layout != "chiral":
         pytest.skip("the bundled model reads no chiral channel: mirror-blind by construction")
     # At the model's working size: the points the network sees (the same indices in the mirror).

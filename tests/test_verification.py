@@ -829,12 +829,15 @@ def test_a_sure_pair_takes_the_fast_exit_and_an_unsure_one_gets_the_full_verific
     assert not unsure.verification.fast_exit
     assert np.array_equal(unsure.transformation, full.transformation)
     assert unsure.confidence == full.confidence
-    assert [h.estimators for h in unsure.verification.hypotheses] == [h.estimators for h in full.verification.hypotheses]
+    assert [h.estimators for h in unsure.verification.hypotheses] == [
+        h.estimators for h in full.verification.hypotheses
+    ]
 
 
 def test_the_fast_exit_is_skipped_for_a_chosen_estimator_or_an_initial_guess(registrar, demo_pair):
     config = _exit_config(0.5)
-    assert not registrar.register(demo_pair.source, demo_pair.target, config=config, estimator="svd").verification.fast_exit
+    chosen = registrar.register(demo_pair.source, demo_pair.target, config=config, estimator="svd")
+    assert not chosen.verification.fast_exit
     init = registrar.register(demo_pair.source, demo_pair.target).transformation
     assert not registrar.register(demo_pair.source, demo_pair.target, config=config, init=init).verification.fast_exit
 
