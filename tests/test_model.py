@@ -593,9 +593,9 @@ def test_onnx_export_with_dynamic_point_counts(tmp_path):
     np.testing.assert_allclose(onnx_scores, expected_scores.numpy(), atol=1e-4)
 
 
-def test_the_slim_preset_reads_sixteen_edge_neighbours():
-    """ModelConfig.edge_neighbours is the geometry's k: the slim preset's edges are (N, 16, 13)
-    and v4's stay (N, 30, 13); the paper's network refuses another k."""
+def test_edge_neighbours_is_the_geometrys_k():
+    """ModelConfig.edge_neighbours is the geometry's k: v4 with k = 16 reads (N, 16, 13) edges
+    and v4 (N, 30, 13); the paper's network refuses another k."""
     import numpy as np
     import pytest
 
@@ -603,9 +603,32 @@ def test_the_slim_preset_reads_sixteen_edge_neighbours():
     from training.config import PRESETS, ModelConfig
 
     points = np.random.default_rng(0).uniform(-1, 1, size=(200, 3))
-    for name, k in (("v5_slim", 16), ("v4", 30)):
-        config = PRESETS[name]
+    for config, k in ((PRESETS["v4"].replace(edge_neighbours=16), 16), (PRESETS["v4"], 30)):
         assert config.geometry().umbrella_neighbours == k
         assert compute_geometry(points, config.geometry()).edges.shape == (200, k, config.edge_channels)
     with pytest.raises(ValueError, match="edge_neighbours"):
         ModelConfig(edge_neighbours=16)
+
+
+def test_assignment_distillation_is_zero_on_the_teachers_plan_and_pulls_towards_it():
+    """The distillation KL is ~0 when the student's Sinkhorn plan is the teacher's, positive
+    otherwise, and a gradient step on the student's scores lowers it."""
+    import torch
+
+    from training.losses import assignment_distillation
+    from training.sinkhorn import log_optimal_transport
+
+    generator = torch.Generator().manual_seed(0)
+    dustbin = torch.tensor(1.0)
+    teacher = log_optimal_transport(torch.randn(2, 7, 9, generator=generator) * 3, dustbin, 50)
+    assert float(assignment_distillation(teacher, teacher)) == pytest.approx(0.0, abs=1e-5)
+
+    scores = (torch.randn(2, 7, 9, generator=generator) * 3).requires_grad_(True)
+    loss = assignment_distillation(log_optimal_transport(scores, dustbin, 50), teacher)
+    assert loss.item() > 0.1
+    loss.backward()
+    with torch.no_grad():
+        stepped = scores - 0.5 * scores.grad
+    assert float(assignment_distillation(log_optimal_transport(stepped, dustbin, 50), teacher)) < loss.item()
+    with pytest.raises(ValueError, match="differ"):
+        assignment_distillation(teacher[:, :5], teacher)

@@ -439,3 +439,25 @@ def test_warm_start_into_a_descriptor_only_network_skips_the_transformer():
     warm_start(alone, full.state_dict())
     assert torch.equal(alone.transformer.projection.weight, full.transformer.projection.weight)
 
+
+
+def test_distilling_from_the_model_itself_starts_at_zero_and_from_another_does_not(trained, tmp_path):
+    """--distill-from adds the KL term to every step: a student warm-started from its teacher
+    logs ~0 at its first step, a fresh student a clearly positive term, and a teacher reading
+    other geometry is refused."""
+    teacher = str(trained / "last.pt")
+    options = [*COMMON, "--max-steps", "1", "--log-every", "1", "--val-every", "0", "--distill-from", teacher]
+    _run([sys.executable, "-m", "training.train", "--out", str(tmp_path / "same"), *options, "--init-from", teacher])
+    _run([sys.executable, "-m", "training.train", "--out", str(tmp_path / "fresh"), *options, "--seed", "5"])
+    same, fresh = ([r for r in _log(tmp_path / name) if r["type"] == "train"][0] for name in ("same", "fresh"))
+    assert abs(same["distill"]) < 1e-3
+    assert fresh["distill"] > 0.01  # two barely trained tiny networks: near-uniform plans, a small KL
+    assert fresh["loss"] == pytest.approx(fresh["nll"] + 0.1 * fresh["infonce"] + fresh["distill"], rel=1e-4)
+
+    other = [*options]
+    other[other.index("tiny")] = "tiny_v3"
+    refused = subprocess.run(
+        [sys.executable, "-m", "training.train", "--out", str(tmp_path / "other"), *other],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert refused.returncode != 0 and "same geometry" in refused.stderr

@@ -289,7 +289,8 @@ PRESETS["v4_descriptor"] = PRESETS["v4"].replace(transformer_layers=0)
 # matcher's attention passes (issue #23: the descriptor alone lost the shape protocols, so the
 # next question is how little matcher keeps them). v4's first pair and final map warm-start it.
 PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
-# A slim v4 for the 60 ms goal of issue #23 (session 16, not trained to an end yet): 16 edge
-# neighbours instead of 30, one descriptor attention layer and one transformer pair. Every
-# weight it has is shaped as v4's, so v4's weights warm-start it (--init-from).
-PRESETS["v5_slim"] = PRESETS["v4"].replace(edge_neighbours=16, descriptor_attention_layers=1, transformer_layers=1)
+# v6: v4's network with one descriptor attention layer instead of two and two transformer pairs
+# instead of three (2.9 instead of 4.2 GFLOP per 512-point pair), for the latency goal of issue
+# #40. It reads v4's geometry, so v5 can teach it (training.train --distill-from) and warm-start
+# it (--init-from: every weight it has is shaped as v5's; the first layers are copied).
+PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from logdesc_rt.metrics import IGNORED
 
-__all__ = ["assignment_nll", "descriptor_infonce", "invert_matches"]
+__all__ = ["assignment_distillation", "assignment_nll", "descriptor_infonce", "invert_matches"]
 
 
 def invert_matches(gt_match_src: torch.Tensor, target_count: int) -> torch.Tensor:
@@ -107,3 +107,34 @@ def descriptor_infonce(
         col_log_prob = torch.gather(F.log_softmax(logits, dim=1), 2, columns).squeeze(2)
         loss = 0.5 * (loss - (col_log_prob * weight).sum() / count)
     return loss
+
+
+def assignment_distillation(log_assignment: torch.Tensor, teacher_log_assignment: torch.Tensor) -> torch.Tensor:
+    """KL divergence from a teacher's Sinkhorn assignment to the student's (distillation).
+
+    Every real row of the assignment (a source point's distribution over the M targets and the
+    dustbin) and every real column (a target's over the N sources and the dustbin) is a
+    distribution (:mod:`training.sinkhorn`); the loss is KL(teacher || student) averaged over
+    the N rows and, separately, the M columns, then the two halves averaged, then the batch.
+    Unlike :func:`assignment_nll` it has a term for every point, labelled or not: the teacher's
+    whole plan, where it is sure and where it hesitates, is the target.
+
+    Args:
+        log_assignment: (B, N + 1, M + 1) the student's, from
+            :func:`training.sinkhorn.log_optimal_transport`.
+        teacher_log_assignment: (B, N + 1, M + 1) the teacher's on the same pair (no gradient
+            is taken through it).
+
+    Returns:
+        Scalar loss, >= 0 up to the Sinkhorn's convergence error; 0 when the plans agree.
+    """
+    if log_assignment.shape != teacher_log_assignment.shape:
+        raise ValueError(
+            f"assignment_distillation: student {tuple(log_assignment.shape)} and teacher "
+            f"{tuple(teacher_log_assignment.shape)} differ"
+        )
+    teacher_log = teacher_log_assignment.detach()
+    pointwise = teacher_log.exp() * (teacher_log - log_assignment)  # (B, N + 1, M + 1)
+    rows = pointwise[:, :-1, :].sum(dim=2).mean(dim=1)  # (B,) over the N real rows
+    columns = pointwise[:, :, :-1].sum(dim=1).mean(dim=1)  # (B,) over the M real columns
+    return (0.5 * (rows + columns)).mean()

@@ -10,7 +10,10 @@ Data: ModelNet10 train + the ModelNet40 subset (train), 5 % of each held out by 
 fixed validation set (:mod:`training.data`); ModelNet10's test split is never read here.
 Loss: the negative log-likelihood of the ground-truth assignment in the Sinkhorn output
 (:func:`training.losses.assignment_nll`) plus ``--aux-descriptor-loss-weight`` x an InfoNCE
-loss on the pre-transformer descriptors. Optimiser: Adam, linear warm-up, then cosine (to
+loss on the pre-transformer descriptors; with ``--distill-from`` a frozen teacher network runs on
+every batch and ``--distill-weight`` x the KL divergence from its Sinkhorn assignment to the
+student's is added (:func:`training.losses.assignment_distillation`).
+Optimiser: Adam, linear warm-up, then cosine (to
 ``--min-lr-ratio`` x lr at ``--decay-steps``, default ``--max-steps``; ``--cycle-start`` starts
 a warm restart) or constant.
 
@@ -77,7 +80,7 @@ from training.data import (
     validation_keys,
 )
 from training.evaluate import evaluation_config, register_scored_batch
-from training.losses import INFONCE_TEMPERATURE, assignment_nll, descriptor_infonce
+from training.losses import INFONCE_TEMPERATURE, assignment_distillation, assignment_nll, descriptor_infonce
 from training.model import LoGDescMatcher
 from training.run_state import (
     JsonlLog,
@@ -162,6 +165,11 @@ def build_parser() -> argparse.ArgumentParser:
     optim.add_argument("--aux-descriptor-loss-weight", type=float, default=0.1,
                        help="weight of InfoNCE on the pre-transformer descriptors")
     optim.add_argument("--infonce-temperature", type=float, default=INFONCE_TEMPERATURE)
+    optim.add_argument("--distill-from", type=Path, default=None, metavar="CHECKPOINT",
+                       help="a trained network (any checkpoint reading the same geometry) whose Sinkhorn "
+                            "assignment the model learns to reproduce beside the task loss")
+    optim.add_argument("--distill-weight", type=float, default=1.0,
+                       help="weight of the distillation term (with --distill-from)")
 
     data = parser.add_argument_group("data")
     data.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
@@ -260,12 +268,16 @@ def forward(model: LoGDescMatcher, batch: dict, amp: bool) -> dict:
     }
 
 
-def loss_terms(outputs: dict, batch: dict, args) -> dict[str, torch.Tensor]:
-    """The weighted loss and its terms (all float32 scalars)."""
+def loss_terms(outputs: dict, batch: dict, args, teacher_outputs: dict | None = None) -> dict[str, torch.Tensor]:
+    """The weighted loss and its terms (all float32 scalars); ``teacher_outputs`` (the
+    teacher's outputs on the same batch) add the distillation term."""
     log_assignment = outputs["log_assignment"].float()
     gt_src, gt_tgt = batch["gt_match_src"], batch["gt_match_tgt"]
     terms = {"nll": assignment_nll(log_assignment, gt_src, gt_tgt)}
     loss = terms["nll"]
+    if teacher_outputs is not None:
+        terms["distill"] = assignment_distillation(log_assignment, teacher_outputs["log_assignment"].float())
+        loss = loss + args.distill_weight * terms["distill"]
     if args.aux_descriptor_loss_weight > 0:
         terms["infonce"] = descriptor_infonce(
             outputs["descriptors_src"].float(), outputs["descriptors_tgt"].float(), gt_src,
@@ -399,6 +411,7 @@ class TrainingRun:
     batches_per_epoch: int
     log: JsonlLog
     resumed_from: Path | None
+    teacher: LoGDescMatcher | None = None  # --distill-from, frozen
     session_start: float = field(default_factory=time.monotonic)
     throughput: float | None = None  # pairs/s, exponential moving average
 
@@ -441,7 +454,11 @@ class TrainingRun:
         """
         compute_start = time.perf_counter()
         batch = to_device(batch, self.device, self.geometry)
-        terms = loss_terms(forward(self.model, batch, self.amp), batch, self.args)
+        teacher_outputs = None
+        if self.teacher is not None:
+            with torch.no_grad():
+                teacher_outputs = forward(self.teacher, batch, self.amp)
+        terms = loss_terms(forward(self.model, batch, self.amp), batch, self.args, teacher_outputs)
         self.optimizer.zero_grad(set_to_none=True)
         grad_norm, skipped = float("nan"), True
         if torch.isfinite(terms["loss"]):
@@ -528,6 +545,7 @@ def start_run(args) -> TrainingRun:
             model, torch.load(args.init_from, map_location="cpu", weights_only=False)["model"],
             skip=tuple(args.init_skip),
         )
+    teacher = load_teacher(args.distill_from, model_config, device) if getattr(args, "distill_from", None) else None
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, args))
     progress = Progress() if checkpoint is None else _restore(checkpoint, model, optimizer, scheduler, args)
@@ -545,7 +563,7 @@ def start_run(args) -> TrainingRun:
         args=args, device=device, amp=bool(args.amp and device.type == "cuda"), model=model,
         optimizer=optimizer, scheduler=scheduler,
         progress=progress, geometry=geometry, train_loader=train_loader, val_loader=val_loader,
-        batches_per_epoch=batches_per_epoch, log=JsonlLog(log_path), resumed_from=resume_path,
+        batches_per_epoch=batches_per_epoch, log=JsonlLog(log_path), resumed_from=resume_path, teacher=teacher,
     )
     run.log.write(run.stamp(
         "resume" if resume_path else "start",
@@ -556,6 +574,26 @@ def start_run(args) -> TrainingRun:
         args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
     ))
     return run
+
+
+def load_teacher(path: Path, model_config: ModelConfig, device: torch.device) -> LoGDescMatcher:
+    """The frozen teacher of ``--distill-from``, in eval mode on ``device``.
+
+    Raises:
+        SystemExit: the teacher reads other geometry than the model (each batch's edges and
+            normals are computed once, for both).
+    """
+    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    teacher_config = ModelConfig.from_dict(checkpoint["model_config"])
+    if teacher_config.geometry() != model_config.geometry():
+        raise SystemExit(
+            f"--distill-from {path}: the teacher reads {teacher_config.geometry()}, the model "
+            f"{model_config.geometry()}; both must read the same geometry"
+        )
+    teacher = LoGDescMatcher(teacher_config)
+    teacher.load_state_dict(checkpoint["model"])
+    teacher.requires_grad_(False)
+    return teacher.eval().to(device)
 
 
 def warm_start(model: LoGDescMatcher, state: dict, skip: tuple[str, ...] = ()) -> None:
