@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
+from .pose.kernels import neighbourhood_normals, plane_normal_equations
 from .pose.svd import solve_rigid_batch
 from .sampling import seeded_subset
 from .validation import as_points
@@ -148,11 +149,9 @@ class _TargetNormals:
         if len(missing):
             k = self.neighbours
             _, neighbour_index = self.tree.query(self.points[missing], k=k)
-            neighbourhoods = np.take(self.points, neighbour_index.reshape(len(missing), k), axis=0)  # (K, k, 3)
-            centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
-            covariance = centred.transpose(0, 2, 1) @ centred  # a batched matmul: faster than einsum here
-            _, vectors = np.linalg.eigh(covariance)  # ascending eigenvalues
-            self.normals[missing] = vectors[:, :, 0]
+            self.normals[missing] = neighbourhood_normals(
+                np.ascontiguousarray(self.points, dtype=np.float64), neighbour_index.reshape(len(missing), k).astype(np.int64)
+            )
             self.known[missing] = True
         return self.normals[index]
 
@@ -404,12 +403,13 @@ def _normal_equations(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(6, 6) and (6,) normal equations of the residuals ``offset . d_k`` along one direction
     per pair, linearised in (rotation about the pivot, translation): rows [arm_k x d_k, d_k].
-    The 6 x 6 form, not a K x 6 lstsq, which was most of ICP's time; no copy is weighted when
-    ``weights`` is None (ICP's hot path)."""
-    jacobian = np.concatenate([np.cross(arm, directions), directions], axis=1)  # (K, 6)
-    residual = np.sum(offset * directions, axis=1)
-    weighted = jacobian if weights is None else jacobian * np.asarray(weights, dtype=np.float64)[:, None]
-    return weighted.T @ jacobian, weighted.T @ residual
+    The 6 x 6 form, not a K x 6 lstsq, accumulated in one compiled pass
+    (:func:`~logdesc_rt.pose.kernels.plane_normal_equations`)."""
+    weights = np.ones(len(arm)) if weights is None else np.asarray(weights, dtype=np.float64)
+    return plane_normal_equations(
+        np.ascontiguousarray(arm, dtype=np.float64), np.ascontiguousarray(offset, dtype=np.float64),
+        np.ascontiguousarray(directions, dtype=np.float64), np.ascontiguousarray(weights),
+    )
 
 
 def point_to_point_icp_batch(

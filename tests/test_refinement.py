@@ -163,3 +163,33 @@ def test_the_batched_screen_recovers_a_small_motion_and_leaves_a_hopeless_start(
     assert np.allclose(poses[0], truth, atol=1e-9) and np.allclose(poses[1], truth, atol=1e-9)
     assert np.array_equal(poses[2], far) and fitness[2] == 0.0
     assert fitness[0] == fitness[1] == 1.0
+
+
+def test_compiled_normals_and_normal_equations_equal_their_numpy_forms():
+    """The compiled kernels (logdesc_rt.pose.kernels) compute what LAPACK's eigh and the NumPy
+    Jacobian products compute, up to rounding: on flat, thin, random and rounded (duplicate,
+    nearly isotropic) neighbourhoods."""
+    from logdesc_rt.pose.kernels import neighbourhood_normals, plane_normal_equations
+
+    rng = np.random.default_rng(7)
+    for flatness in (1e-4, 0.05, 1.0):
+        points = rng.normal(size=(600, 3)) * np.array([1.0, 0.5, flatness])
+        for rounding in (None, 1):
+            cloud = points if rounding is None else np.round(points, rounding)
+            index = rng.integers(0, len(cloud), size=(300, 10)).astype(np.int64)
+            neighbourhoods = cloud[index]
+            centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
+            values, vectors = np.linalg.eigh(centred.transpose(0, 2, 1) @ centred)
+            normals = neighbourhood_normals(cloud, index)
+            assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+            separated = values[:, 1] - values[:, 0] > 1e-6 * values[:, 2]  # a least axis exists
+            assert separated.mean() > 0.9
+            assert np.abs(np.sum(normals * vectors[:, :, 0], axis=1))[separated].min() > 1 - 1e-9
+
+    arm, offset, directions = rng.normal(size=(3, 400, 3))
+    weights = rng.uniform(0, 1, size=400)
+    jacobian = np.concatenate([np.cross(arm, directions), directions], axis=1)
+    residual = np.sum(offset * directions, axis=1)
+    matrix, rhs = plane_normal_equations(arm, offset, directions, weights)
+    assert np.allclose(matrix, (jacobian * weights[:, None]).T @ jacobian, rtol=1e-12, atol=1e-12)
+    assert np.allclose(rhs, (jacobian * weights[:, None]).T @ residual, rtol=1e-12, atol=1e-12)

@@ -1,0 +1,130 @@
+"""Compiled kernels of pose refinement and verification: normals from neighbour lists, and the
+point-to-plane normal equations.
+
+Both replace a handful of NumPy passes over (K, k, 3) or (K, 6) temporaries that, at the
+1,000-10,000 points verification and ICP work on, cost more in allocation and dispatch than in
+arithmetic. They compute what the NumPy forms computed, up to rounding:
+
+- :func:`neighbourhood_normals`: the least-variance axis of each point's neighbours (the
+  eigenvector of the smallest eigenvalue of their covariance about their mean), by cyclic Jacobi
+  rotations on the 3 x 3 matrix (converged to machine precision; robust where two eigenvalues
+  are close, where a closed-form eigenvector is not);
+- :func:`plane_normal_equations`: the 6 x 6 system J^T W J, J^T W r of the residuals
+  r_k = offset_k . d_k with Jacobian rows [arm_k x d_k, d_k].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._jit import jit
+
+JACOBI_SWEEPS = 12  # a 3 x 3 symmetric matrix converges in 4-6; the loop stops when it has
+
+
+@jit
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22, out):
+    """Write into ``out`` (3,) the unit eigenvector of the smallest eigenvalue of the symmetric
+    3 x 3 matrix [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]] (cyclic Jacobi)."""
+    a = np.empty((3, 3))
+    a[0, 0], a[0, 1], a[0, 2] = a00, a01, a02
+    a[1, 0], a[1, 1], a[1, 2] = a01, a11, a12
+    a[2, 0], a[2, 1], a[2, 2] = a02, a12, a22
+    v = np.eye(3)
+    for _ in range(JACOBI_SWEEPS):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diagonal = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-30 * diagonal or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            # The rotation that zeroes a[p, q] (the smaller of the two angles: stable).
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            for r in range(3):  # a <- a G (columns p, q)
+                arp, arq = a[r, p], a[r, q]
+                a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
+            for r in range(3):  # a <- G^T a (rows p, q)
+                apr, aqr = a[p, r], a[q, r]
+                a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
+            for r in range(3):  # v <- v G
+                vrp, vrq = v[r, p], v[r, q]
+                v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
+    smallest = 0
+    if a[1, 1] < a[smallest, smallest]:
+        smallest = 1
+    if a[2, 2] < a[smallest, smallest]:
+        smallest = 2
+    norm = np.sqrt(v[0, smallest] ** 2 + v[1, smallest] ** 2 + v[2, smallest] ** 2)
+    for r in range(3):
+        out[r] = v[r, smallest] / norm
+
+
+@jit
+def neighbourhood_normals(points: np.ndarray, neighbour_index: np.ndarray) -> np.ndarray:
+    """(K, 3) unit normals: the least-variance axis of each row's neighbours.
+
+    Args:
+        points: (N, 3) float64.
+        neighbour_index: (K, k) int64 indices into ``points``, k >= 3: each row one
+            neighbourhood (the point itself among them, as a k-d tree query returns it).
+
+    Returns:
+        (K, 3) float64 unit vectors, signs arbitrary; where a neighbourhood has no least-variance
+        axis (all its points equal) some unit vector.
+    """
+    count, k = neighbour_index.shape
+    normals = np.empty((count, 3))
+    for i in range(count):
+        mx = my = mz = 0.0
+        for j in range(k):
+            n = neighbour_index[i, j]
+            mx += points[n, 0]
+            my += points[n, 1]
+            mz += points[n, 2]
+        mx, my, mz = mx / k, my / k, mz / k
+        xx = xy = xz = yy = yz = zz = 0.0
+        for j in range(k):
+            n = neighbour_index[i, j]
+            dx, dy, dz = points[n, 0] - mx, points[n, 1] - my, points[n, 2] - mz
+            xx += dx * dx
+            xy += dx * dy
+            xz += dx * dz
+            yy += dy * dy
+            yz += dy * dz
+            zz += dz * dz
+        _smallest_eigenvector(xx, xy, xz, yy, yz, zz, normals[i])
+    return normals
+
+
+@jit
+def plane_normal_equations(arm: np.ndarray, offset: np.ndarray, directions: np.ndarray, weights: np.ndarray):
+    """(6, 6) J^T W J and (6,) J^T W r for residuals r_k = offset_k . d_k, Jacobian rows
+    [arm_k x d_k, d_k] (rotation about the pivot, then translation).
+
+    Args:
+        arm, offset, directions: (K, 3) float64 (``directions``: unit target normals, or an axis).
+        weights: (K,) float64 non-negative pair weights.
+    """
+    matrix = np.zeros((6, 6))
+    rhs = np.zeros(6)
+    row = np.empty(6)
+    for i in range(arm.shape[0]):
+        ax, ay, az = arm[i, 0], arm[i, 1], arm[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        row[0], row[1], row[2] = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
+        row[3], row[4], row[5] = dx, dy, dz
+        weight = weights[i]
+        residual = weight * (offset[i, 0] * dx + offset[i, 1] * dy + offset[i, 2] * dz)
+        for p in range(6):
+            weighted = weight * row[p]
+            rhs[p] += row[p] * residual
+            for q in range(p, 6):
+                matrix[p, q] += weighted * row[q]
+    for p in range(6):
+        for q in range(p):
+            matrix[p, q] = matrix[q, p]
+    return matrix, rhs
