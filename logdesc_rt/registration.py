@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -39,7 +38,7 @@ import numpy as np
 
 from .config import REFINEMENT_METHODS, RefinementConfig, RuntimeConfig, SubsamplingConfig
 from .config_resolution import UNSET, ConfigResolver
-from .geometry import PointGeometry, compute_geometry
+from .geometry import compute_geometry
 from .io import input_points
 from .matching import sinkhorn_matches
 from .network import OnnxNetwork
@@ -49,7 +48,7 @@ from .pose.evaluation import check_rigid_transformation
 from .pose_selection import register_matched
 from .results import Descriptors, RegistrationResult  # noqa: F401 (re-exported)
 from .sampling import working_subset
-from .threads import one_thread_per_caller
+from .threads import one_thread_per_caller, per_cloud
 from .timing import timed
 from .validation import as_points, check_not_degenerate
 
@@ -286,20 +285,15 @@ class Registrar:
 
     def _prepare_loaded(self, source_points: np.ndarray, target_points: np.ndarray, timings: dict) -> PreparedPair:
         with timed(timings, "subsample"):
-            source_index = self._working_subset(source_points)
-            target_index = self._working_subset(target_points)
+            source_index, target_index = per_cloud(self._working_subset, (source_points,), (target_points,))
         normalization = PairNormalization.fit(
             source_points[source_index], target_points[target_index], self.manifest.normalization
         )
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
         with timed(timings, "geometry"):
-            # The two clouds concurrently: kNN, eigen-solver and matrix products release the GIL;
-            # each thread's libraries on that one thread (threads.py: no four threads on two cores).
-            with ThreadPoolExecutor(max_workers=2) as pool:
-                source_job = pool.submit(_geometry_on_one_thread, network_source, self.manifest.geometry)
-                target_geometry = _geometry_on_one_thread(network_target, self.manifest.geometry)
-                source_geometry = source_job.result()
+            geometry = self.manifest.geometry
+            source_geometry, target_geometry = per_cloud(compute_geometry, (network_source, geometry), (network_target, geometry))
         return PreparedPair(
             source_points=source_points,
             target_points=target_points,
@@ -359,12 +353,6 @@ class Registrar:
 
 
 _DEFAULT_REGISTRAR: Registrar | None = None
-
-
-def _geometry_on_one_thread(points: np.ndarray, config) -> PointGeometry:
-    """compute_geometry in a worker thread, its libraries on that one thread (see threads.py)."""
-    with one_thread_per_caller():
-        return compute_geometry(points, config)
 
 
 def _default_registrar() -> Registrar:

@@ -3,10 +3,15 @@ their counts back after."""
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import threading
+
 import pykdtree.kdtree  # noqa: F401 (loads the OpenMP runtime the geometry uses)
+import pytest
 from threadpoolctl import threadpool_info
 
-from logdesc_rt.threads import one_thread_per_caller
+from logdesc_rt.threads import one_thread_per_caller, per_cloud
 
 
 def _counts() -> dict[str, int]:
@@ -22,3 +27,34 @@ def test_one_thread_inside_the_block_and_the_counts_restored_after():
             assert set(_counts().values()) == {1}
         assert set(_counts().values()) == {1}
     assert _counts() == before
+
+
+def test_per_cloud_returns_both_calls_in_order_each_on_one_library_thread():
+    def probe(name):
+        return name, threading.current_thread().name, set(_counts().values())
+
+    (source, source_thread, source_counts), (target, target_thread, target_counts) = per_cloud(
+        probe, ("source",), ("target",)
+    )
+    assert (source, target) == ("source", "target")
+    assert source_thread != target_thread == threading.current_thread().name  # the two ran apart
+    assert source_counts == target_counts == {1}
+
+
+def test_per_cloud_raises_the_source_calls_error_and_still_works_after():
+    def fails_on_source(name):
+        if name == "source":
+            raise ValueError("bad source cloud")
+        return name
+
+    with pytest.raises(ValueError, match="bad source cloud"):
+        per_cloud(fails_on_source, ("source",), ("target",))
+    assert per_cloud(str.upper, ("a",), ("b",)) == ("A", "B")
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_per_cloud_works_in_a_forked_child():
+    per_cloud(str.upper, ("a",), ("b",))  # the parent's worker thread exists before the fork
+    context = multiprocessing.get_context("fork")
+    with context.Pool(1) as pool:
+        assert pool.apply(per_cloud, (str.upper, ("a",), ("b",))) == ("A", "B")
