@@ -52,7 +52,8 @@ def _controller() -> ThreadpoolController:
 def one_thread_per_caller() -> Iterator[None]:
     """OpenMP (in the calling thread) and BLAS (process-wide) on one thread inside the block,
     their previous counts restored after it. Enter it in each Python thread that does the work:
-    OpenMP's count is per thread."""
+    OpenMP's count is per thread. BLAS's is process-wide, and threadpoolctl lets one thread at a
+    time hold it: a block entered while another thread holds BLAS limits only its OpenMP."""
     with _controller().limit(limits=1):
         yield
 
@@ -87,10 +88,13 @@ def per_cloud(function: Callable[..., T], source: tuple, target: tuple) -> tuple
     queries, compiled kernels and array work that release the interpreter lock, so two clouds
     take about the time of one on two cores. An exception in either call is raised here."""
 
-    def on_one_thread(arguments: tuple) -> T:
-        with one_thread_per_caller():
-            return function(*arguments)
+    def source_on_the_worker() -> T:
+        with _controller().select(user_api="openmp").limit(limits=1):
+            return function(*source)
 
-    source_job = _cloud_thread().submit(on_one_thread, source)
-    target_result = on_one_thread(target)
-    return source_job.result(), target_result
+    # BLAS's count is process-wide and threadpoolctl lets one thread at a time set it: the caller
+    # holds it at one for both calls, and the worker sets only its own OpenMP count.
+    with one_thread_per_caller():
+        source_job = _cloud_thread().submit(source_on_the_worker)
+        target_result = function(*target)
+        return source_job.result(), target_result

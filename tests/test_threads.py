@@ -41,6 +41,14 @@ def test_per_cloud_returns_both_calls_in_order_each_on_one_library_thread():
     assert source_counts == target_counts == {1}
 
 
+def test_per_cloud_many_times_leaves_the_counts_as_they_were():
+    before = _counts()
+    for _ in range(50):
+        counts = per_cloud(lambda name: set(_counts().values()), ("source",), ("target",))
+        assert counts == ({1}, {1})
+    assert _counts() == before
+
+
 def test_per_cloud_raises_the_source_calls_error_and_still_works_after():
     def fails_on_source(name):
         if name == "source":
