@@ -196,8 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     fitting.add_argument("--folds", type=int, default=5,
                          help="held-out estimate of the flag by shape folds (0 or 1: none)")
     fitting.add_argument("--split", choices=SPLITS, default="v3",
-                         help="whose validation shapes the cache holds, for the folds (a cache collected since "
-                              "session 20 records its own, which wins)")
+                         help="whose validation shapes the cache holds, for the folds (a cache that records its "
+                              "own split uses that one)")
     fitting.add_argument("--manifest", type=Path, default=None, metavar="MODEL_DIR",
                          help="write the calibration into this model's manifest.json (the model collected with)")
     counting = commands.add_parser(
@@ -516,7 +516,7 @@ def fit(
     summary = flag_summary(outcomes, groups)
     held_out = None
     if folds > 1:
-        # The split the pairs were collected from (recorded since session 20), else the caller's.
+        # The split the pairs were collected from (where the cache records it), else the caller's.
         recorded = json.loads((cache / MODEL_RECORD).read_text()) if (cache / MODEL_RECORD).exists() else {}
         shapes = pair_shapes(sorted(outcomes), recorded.get("split", split))
         held_out = flag_summary(cross_validated_outcomes(rows, base, shapes, folds), groups)

@@ -144,7 +144,7 @@ def test_a_pair_with_no_overlap_is_a_result_not_an_exception(registrar):
 def test_box_outliers_in_both_clouds_cost_at_most_two_pairs_in_twenty(registrar, shared_data):
     """20 ModelNet10 test pairs (noisy, partial, any relative rotation), then the same pairs with
     2 % uniform outliers in each cloud's grown bounding box: at most 10 points of success lost.
-    Measured (session 21): 19 clean, 17 with outliers. The two lost pairs (3 and 10) turn into
+    Measured when the bar was set: 19 clean, 17 with outliers. The two lost pairs (3 and 10) turn into
     half-turn flips of a symmetric shape; pair 10 was a near miss clean (5.2 degrees) until the
     pose without ICP gained its point-to-plane steps (4.4), so before them the same loss
     showed as one pair (18 -> 17) and this test allowed one."""

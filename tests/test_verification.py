@@ -484,7 +484,7 @@ def test_bad_second_look_settings_are_named(values, message):
 
 
 def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
-    """A manifest calibrated before session 16 holds no second-look settings: its flag was
+    """A manifest calibrated without the second look holds no second-look settings: its flag was
     fitted without turn-overs as rivals, so the model runs without the second look; the shipped
     manifest stores its own settings."""
     import shutil
@@ -541,7 +541,7 @@ def test_a_calibration_stored_before_the_coarse_refit_returns_the_estimators_pos
 
 
 def test_a_calibration_stored_before_the_plane_steps_returns_the_plain_refit(tmp_path, demo_pair):
-    """A manifest without ``refit_plane_steps`` (before session 21) returns the SVD re-fit
+    """A manifest without ``refit_plane_steps`` (calibrated before the plane steps existed) returns the SVD re-fit
     without ICP, as when its numbers were measured; the shipped manifest stores 3 steps, and
     its pose without ICP differs from the plain re-fit's."""
     import shutil
