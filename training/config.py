@@ -293,4 +293,5 @@ PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
 # instead of three (2.9 instead of 4.2 GFLOP per 512-point pair), for the latency goal of issue
 # #40. It reads v4's geometry, so v5 can teach it (training.train --distill-from) and warm-start
 # it (--init-from: every weight it has is shaped as v5's; the first layers are copied).
+# Trained and not shipped (docs: decisions, v6).
 PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)
