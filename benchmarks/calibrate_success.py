@@ -536,7 +536,7 @@ def fit(
     report.with_suffix(".json").write_text(json.dumps(payload, indent=1))
     report.with_suffix(".md").write_text(_markdown(payload, pairs_per_group))
     if manifest_dir is not None:
-        write_calibration(manifest_dir, fitted)
+        write_calibration(manifest_dir, fitted, settings)
     print(json.dumps({"weights": fitted.weights, "bias": fitted.bias, "threshold": fitted.success_threshold,
                       "exit_weights": fitted.exit_weights, "exit_bias": fitted.exit_bias,
                       "exit_threshold": fitted.exit_threshold}, indent=1))
@@ -762,9 +762,10 @@ def cross_validated_outcomes(rows: list[dict], base, shapes: dict[str, str], fol
     return outcomes
 
 
-def write_calibration(model_dir: Path, fitted) -> None:
+def write_calibration(model_dir: Path, fitted, settings: dict | None = None) -> None:
     """Store the fitted weights, bias and threshold as the model's verification defaults, with
-    the second look's settings they were fitted with."""
+    the second look's settings and every ``--set`` setting (``settings``' keys, e.g. the
+    verification caps) they were fitted with."""
     path = Path(model_dir) / "manifest.json"
     manifest = json.loads(path.read_text())
     runtime = manifest.setdefault("runtime", {})
@@ -786,6 +787,9 @@ def write_calibration(model_dir: Path, fitted) -> None:
         "exit_bias": fitted.exit_bias,
         "exit_threshold": fitted.exit_threshold,
     }
+    for key in settings or {}:
+        value = getattr(fitted, key)
+        runtime["verification"][key] = list(value) if isinstance(value, tuple) else value
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"calibration written to {path}")
 

@@ -238,6 +238,19 @@ def test_a_fitted_calibration_written_into_a_manifest_is_the_models_flag(tmp_pat
     assert config.fsr.iterations == 7  # the rest of the manifest's runtime section is kept
 
 
+def test_settings_a_calibration_was_fitted_with_are_stored_with_it(tmp_path):
+    """fit --set source_points=1000 ...: a flag fitted on capped verification must run capped."""
+    calibrate_success = _calibrate_success()
+    model = _model_copy(tmp_path, {})
+    defaults = VerificationConfig()
+    fitted = dataclasses.replace(defaults, source_points=defaults.source_points // 2,
+                                 target_points=defaults.target_points // 2, turn_over_axes=4)
+    calibrate_success.write_calibration(model, fitted, {"source_points": 1, "target_points": 1})
+    verification = Registrar(model).config.verification
+    assert (verification.source_points, verification.target_points) == (fitted.source_points, fitted.target_points)
+    assert verification == fitted
+
+
 def _calibrate_success():
     import sys
     from pathlib import Path
