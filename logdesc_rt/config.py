@@ -303,34 +303,34 @@ class VerificationConfig(_DictMixin):
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
     weights: tuple[float, ...] = (
-        0.5304082377961339,
-        2.2461832090538096,
-        -8.249354701647452,
-        0.9482968623095877,
-        2.0062665186790394,
-        4.280783373450282,
-        -1.9963474993599246,
-        0.9254894152019564,
-        2.1687422792560676,
-        -0.9530415647908403,
+        0.3228484742673728,
+        2.2569159789076743,
+        -8.299057471848558,
+        0.9273231053966258,
+        1.94410074643236,
+        4.2144738222367435,
+        -1.0352528863399604,
+        1.1991161817111498,
+        2.3783673592352343,
+        -1.101307096419035,
     )
-    bias: float = 0.49155825742918124
-    success_threshold: float = 0.6491
+    bias: float = -0.00015169788979507715
+    success_threshold: float = 0.5756
     seed: int = 0
     candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k", "core")
     exit_estimator: str = "fsr"
     exit_weights: tuple[float, ...] = (
-        0.07507903351686297,
-        2.5172688637212683,
-        -8.68821588024252,
-        0.6975824184418756,
-        1.65182925186956,
-        4.706920279569138,
-        -0.07415770085811835,
-        -1.4065811875695575,
+        0.47994851434618985,
+        2.5365534724635115,
+        -8.919089170375978,
+        0.6881108021461166,
+        1.0270404614474906,
+        5.0300913452871345,
+        0.35248911674744327,
+        -1.088261024065215,
     )
-    exit_bias: float = 0.44355866525724963
-    exit_threshold: float = 0.7788
+    exit_bias: float = 0.18744439710294558
+    exit_threshold: float = 0.7752
 
     @property
     def fast_exit(self) -> bool:
@@ -523,7 +523,7 @@ class RansacConfig(_DictMixin):
 
 
 SUBSAMPLING_METHODS = ("fps", "voxel")
-DEFAULT_WORKING_SIZE = 512
+DEFAULT_WORKING_SIZE = 384
 """The bundled model's working size (points per cloud its networks see), for code that has no
 model at hand (the CLI reads its inputs before loading one; a checkpoint without the value);
 tests hold it equal to the bundled manifest's."""
