@@ -31,6 +31,14 @@ from .outliers import stray_point_mask
 from .validation import as_points
 
 
+def centre_and_radius(points: np.ndarray, config: NormalizationConfig = NormalizationConfig()) -> tuple[np.ndarray, float]:
+    """The centroid (3,) of (N, 3) ``points`` and their radius about it (the largest distance),
+    stray points (``config.stray_*``) left out of both."""
+    kept = points[~stray_point_mask(points, config)]
+    centre = kept.mean(axis=0)
+    return centre, float(np.linalg.norm(kept - centre, axis=1).max())
+
+
 @dataclass(frozen=True)
 class PairNormalization:
     """The similarity transforms of one (source, target) pair.
@@ -53,16 +61,18 @@ class PairNormalization:
 
         Stray points (``config.stray_*``) are left out of both the centres and the radius.
         """
-        source = as_points(source, name="source")
-        target = as_points(target, name="target")
-        source_kept = source[~stray_point_mask(source, config)]
-        target_kept = target[~stray_point_mask(target, config)]
-        source_centre = source_kept.mean(axis=0)
-        target_centre = target_kept.mean(axis=0)
-        radius = max(
-            np.linalg.norm(source_kept - source_centre, axis=1).max(),
-            np.linalg.norm(target_kept - target_centre, axis=1).max(),
-        )
+        source_centre, source_radius = centre_and_radius(as_points(source, name="source"), config)
+        target_centre, target_radius = centre_and_radius(as_points(target, name="target"), config)
+        return cls.from_extents(source_centre, source_radius, target_centre, target_radius, config)
+
+    @classmethod
+    def from_extents(
+        cls, source_centre: np.ndarray, source_radius: float, target_centre: np.ndarray, target_radius: float,
+        config: NormalizationConfig = NormalizationConfig(),
+    ) -> "PairNormalization":
+        """The pair's transforms from each cloud's :func:`centre_and_radius` (what :meth:`fit`
+        does after computing them; the runtime computes them for the two clouds at once)."""
+        radius = max(source_radius, target_radius)
         # A single point (radius 0) has no scale; keep 1 rather than divide by zero. Callers that
         # need geometry reject such clouds themselves.
         scale = float(radius / config.target_radius) if radius > 0 else 1.0

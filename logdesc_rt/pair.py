@@ -36,7 +36,8 @@ class PreparedPair:
         source_network, target_network: (Ns, 3) / (Mt, 3) float64 working subsets, network units.
         source_geometry, target_geometry: their kNN, PCA features, normals and (N, k, C) edges;
             None for a pair scored outside the runtime (:func:`pair_from_scores`).
-        timings: stage name -> seconds: load, subsample, geometry.
+        timings: stage name -> seconds: load, subsample (the working subsets and the
+            normalisation), geometry.
     """
 
     source_points: np.ndarray

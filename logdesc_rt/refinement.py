@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
-from .pose.kernels import neighbourhood_normals, plane_normal_equations
+from .pose.kernels import correspondence_plane_equations, neighbourhood_normals, plane_normal_equations
 from .pose.svd import solve_rigid_batch
 from .sampling import seeded_subset
 from .validation import as_points
@@ -145,6 +145,10 @@ class _TargetNormals:
 
     def at(self, index: np.ndarray) -> np.ndarray:
         """(K, 3) normals of the points ``index`` (K,) int."""
+        return self.covering(index)[index]
+
+    def covering(self, index: np.ndarray) -> np.ndarray:
+        """(M, 3) the normals of every point, computed at least at ``index`` (K,) int."""
         missing = np.unique(index[~self.known[index]])
         if len(missing):
             k = self.neighbours
@@ -153,7 +157,7 @@ class _TargetNormals:
                 np.ascontiguousarray(self.points, dtype=np.float64), neighbour_index.reshape(len(missing), k).astype(np.int64)
             )
             self.known[missing] = True
-        return self.normals[index]
+        return self.normals
 
 
 def icp(
@@ -280,10 +284,13 @@ class _GivenNormals:
     """Normals the caller computed, read like :class:`_TargetNormals`."""
 
     def __init__(self, normals: np.ndarray):
-        self.normals = normals
+        self.normals = np.ascontiguousarray(normals, dtype=np.float64)
 
     def at(self, index: np.ndarray) -> np.ndarray:
         return self.normals[index]
+
+    def covering(self, index: np.ndarray) -> np.ndarray:
+        return self.normals
 
 
 def _icp_stage(
@@ -301,13 +308,20 @@ def _icp_stage(
     for iteration in range(1, max_iterations + 1):
         moved = source @ pose[:3, :3].T + pose[:3, 3]
         distance, index = tree.query(moved, k=1, distance_upper_bound=max_distance)
-        close = np.isfinite(distance)
-        if np.count_nonzero(close) < MIN_CORRESPONDENCES:
-            return pose, iteration - 1, "too_few_correspondences"
         if normals is None:
+            close = np.isfinite(distance)
+            if np.count_nonzero(close) < MIN_CORRESPONDENCES:
+                return pose, iteration - 1, "too_few_correspondences"
             step = rigid_transform_svd(moved[close], target[index[close]])
         else:
-            step = plane_fit_step(moved[close], target[index[close]], normals.at(index[close]))
+            # The pairs' normal equations straight from the query (no gathered copies of them).
+            index = index.astype(np.int64, copy=False)
+            matrix, rhs, pivot, pairs = correspondence_plane_equations(
+                moved, target, normals.covering(index[np.isfinite(distance)]), index, distance
+            )
+            if pairs < MIN_CORRESPONDENCES:
+                return pose, iteration - 1, "too_few_correspondences"
+            step = _plane_step(matrix, rhs, pivot)
         pose = step @ pose
         if _step_size(step, max_distance) < tolerance:
             return pose, iteration, "converged"
@@ -388,6 +402,12 @@ def plane_fit_step(
         for axis in np.eye(3):
             axis_matrix, axis_rhs = _normal_equations(arm, offset, np.broadcast_to(axis, arm.shape), point_weights)
             matrix, rhs = matrix + axis_matrix, rhs + axis_rhs
+    return _plane_step(matrix, rhs, pivot)
+
+
+def _plane_step(matrix: np.ndarray, rhs: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """(4, 4) update from the (6, 6) / (6,) linearised plane-fit equations about ``pivot`` (3,):
+    a rotation about the pivot by the first three unknowns, then their translation."""
     # lstsq on the 6 x 6 normal equations still gives the minimum-norm step where the surface
     # leaves a motion free (a plane, a cylinder).
     solution, *_ = np.linalg.lstsq(matrix, rhs, rcond=None)

@@ -42,7 +42,7 @@ from .geometry import compute_geometry
 from .io import input_points
 from .matching import sinkhorn_matches
 from .network import OnnxNetwork
-from .normalization import PairNormalization
+from .normalization import PairNormalization, centre_and_radius
 from .pair import MIN_MATCHES, PairMatches, PreparedPair, pair_from_scores  # noqa: F401 (re-exported)
 from .pose.evaluation import check_rigid_transformation
 from .pose_selection import register_matched
@@ -284,11 +284,11 @@ class Registrar:
             return self._prepare_loaded(source_points, target_points, timings)
 
     def _prepare_loaded(self, source_points: np.ndarray, target_points: np.ndarray, timings: dict) -> PreparedPair:
-        with timed(timings, "subsample"):
-            source_index, target_index = per_cloud(self._working_subset, (source_points,), (target_points,))
-        normalization = PairNormalization.fit(
-            source_points[source_index], target_points[target_index], self.manifest.normalization
-        )
+        with timed(timings, "subsample"):  # the working subsets, and the pair's map to network units
+            (source_index, *source_extent), (target_index, *target_extent) = per_cloud(
+                self._working_subset_and_extent, (source_points,), (target_points,)
+            )
+            normalization = PairNormalization.from_extents(*source_extent, *target_extent, self.manifest.normalization)
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
         with timed(timings, "geometry"):
@@ -340,6 +340,11 @@ class Registrar:
         points = as_points(cloud, name=name, min_points=self.manifest.geometry.min_points)
         check_not_degenerate(points, name=name)
         return points
+
+    def _working_subset_and_extent(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """The working subset's indices, and its centre and radius (:func:`centre_and_radius`)."""
+        index = self._working_subset(points)
+        return (index, *centre_and_radius(points[index], self.manifest.normalization))
 
     def _working_subset(self, points: np.ndarray) -> np.ndarray:
         """(K,) int64 indices of the points the network sees, K <= min(N, max_points)."""

@@ -62,12 +62,15 @@ stage produces) proposes alternatives, refined and scored with the rest:
 **The fast exit.** A calibration may carry a second logistic model, the exit model, over the
 features of one hypothesis alone (``EXIT_FEATURES``: no agreement, no margin). Before any other
 candidate is estimated, the exit estimator's pose (``VerificationConfig.exit_estimator``) is
-refined and scored; when the exit model's confidence reaches ``exit_threshold`` (set on
-validation pairs where such exits were right at least 99 % of the time), that hypothesis is
-kept with the exit model's confidence, and the other candidates, the second look and the
-rival scoring do not run (:meth:`PoseVerifier.fast_exit`). Otherwise every candidate is
-verified as above, and the flag is the full model's. ``VerificationResult.fast_exit`` says
-which path a pair took.
+refined and scored on the pair's *working subsets* (the at most working-size points per cloud
+the network saw; :func:`~logdesc_rt.pose_selection.exit_verifier`), so that this path costs
+the same whatever the clouds' size; when the exit model's confidence reaches
+``exit_threshold`` (set on validation pairs, scored the same way, where such exits were right
+at least 99 % of the time), that hypothesis is kept with the exit model's confidence, and the
+other candidates, the second look and the rival scoring do not run
+(:meth:`PoseVerifier.fast_exit`). Otherwise every candidate is verified as above on the full
+clouds' subsets, and the flag is the full model's. ``VerificationResult.fast_exit`` says which
+path a pair took.
 
 The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
 the pose sits in the basin of a good alignment. When the caller does not refine, the
@@ -88,6 +91,7 @@ from .config import EXIT_FEATURES, VERIFICATION_FEATURES, VerificationConfig
 from .metrics import rotation_error_deg
 from .refinement import estimate_normals, icp, point_to_point_icp_batch
 from .sampling import seeded_subset
+from .threads import per_cloud
 
 # The log_matches feature's fixed scale (every stored calibration was fitted with it; it is
 # not the working size, which may change without refitting).
@@ -162,6 +166,16 @@ def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return pose
 
 
+def _tree_spacing_normals(points: np.ndarray, with_tree: bool = True) -> tuple:
+    """(k-d tree, median nearest-neighbour distance, (N, 3) normals) of (N, 3) ``points``; only
+    ``(normals,)`` when ``with_tree`` is False."""
+    if not with_tree:
+        return (estimate_normals(points),)
+    tree = KDTree(points)
+    spacing, _ = tree.query(points, k=2)
+    return tree, float(np.median(spacing[:, 1])), estimate_normals(points, tree=tree)
+
+
 def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
     """Calibrated probability, in [0, 1], from a (F,) feature vector."""
     z = config.bias + float(np.dot(config.weights, features))
@@ -210,13 +224,13 @@ class PoseVerifier:
         self.confidences = confidences
         self.distance = config.distance_fraction * scale
         # One tree of the scored target serves the spacing, every pose's query and its normals.
-        self.target_tree = KDTree(self.target)
-        spacing, _ = self.target_tree.query(self.target, k=2)
-        self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
+        # The two subsets' normals (most of this set-up's time) are computed side by side.
+        (self.target_tree, target_spacing, self.target_normals), (self.source_normals,) = per_cloud(
+            _tree_spacing_normals, (self.target,), (self.source, False)
+        )
+        self.sharp_distance = config.sharp_factor * target_spacing
         self.match_tolerance = config.match_tolerance * scale
         self.centre = self.source.mean(axis=0)
-        self.target_normals = estimate_normals(self.target, tree=self.target_tree)
-        self.source_normals = estimate_normals(self.source)
         # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).
         _, axes = np.linalg.eigh(np.cov((self.source - self.centre).T))
         self.half_turns = np.stack([_half_turn(axes[:, i], self.centre) for i in range(3)])
@@ -234,25 +248,31 @@ class PoseVerifier:
 
         Returns the one-hypothesis result when the exit model's confidence on its features
         (EXIT_FEATURES: those of this hypothesis alone) reaches ``exit_threshold``, else None
-        (the caller then verifies every candidate, :meth:`verify`; the refinement done here is
-        reused). None as well without an exit model.
+        (the caller then verifies every candidate, :meth:`verify`). None as well without an
+        exit model. The runtime asks a verifier of the working subsets
+        (:func:`~logdesc_rt.pose_selection.exit_verifier`).
         """
         if not self.config.fast_exit:
             return None
+        hypothesis = self.exit_hypothesis(estimator, pose)
+        if hypothesis.confidence < self.config.exit_threshold:
+            return None
+        return VerificationResult(best=hypothesis, hypotheses=(hypothesis,), candidate_count=1, fast_exit=True)
+
+    def exit_hypothesis(self, estimator: str, pose: np.ndarray) -> Hypothesis:
+        """``pose`` (user frame) as the fast exit scores it: refined, its features taken alone
+        (no agreement, no margin), its confidence the exit model's (0 without one). The
+        calibration scores its pairs' exits with this very call."""
         refined = self.refine(pose)
         features = self.features(refined)
-        confidence = exit_confidence(features, self.config)
-        if confidence < self.config.exit_threshold:
-            return None
-        hypothesis = Hypothesis(
+        return Hypothesis(
             estimators=(estimator,),
             transformation=pose,
             verified_transformation=refined,
             features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
-            confidence=confidence,
+            confidence=exit_confidence(features, self.config),
             refined=True,
         )
-        return VerificationResult(best=hypothesis, hypotheses=(hypothesis,), candidate_count=1, fast_exit=True)
 
     def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
         """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""

@@ -10,7 +10,9 @@ arithmetic. They compute what the NumPy forms computed, up to rounding:
   rotations on the 3 x 3 matrix (converged to machine precision; robust where two eigenvalues
   are close, where a closed-form eigenvector is not);
 - :func:`plane_normal_equations`: the 6 x 6 system J^T W J, J^T W r of the residuals
-  r_k = offset_k . d_k with Jacobian rows [arm_k x d_k, d_k].
+  r_k = offset_k . d_k with Jacobian rows [arm_k x d_k, d_k];
+- :func:`correspondence_plane_equations`: the same system for one point-to-plane ICP iteration,
+  read straight from a k-d tree query's output (no gathered copies of the pairs).
 """
 
 from __future__ import annotations
@@ -128,3 +130,58 @@ def plane_normal_equations(arm: np.ndarray, offset: np.ndarray, directions: np.n
         for q in range(p):
             matrix[p, q] = matrix[q, p]
     return matrix, rhs
+
+
+@jit
+def correspondence_plane_equations(
+    moved: np.ndarray, target: np.ndarray, normals: np.ndarray, index: np.ndarray, distance: np.ndarray
+):
+    """The point-to-plane normal equations of one ICP iteration, about the pivot of its pairs.
+
+    The pairs are (moved_i, target[index_i]) for every i with a finite ``distance_i`` (a k-d tree
+    query with an upper bound marks the others infinite); the system is
+    :func:`plane_normal_equations`' with arm = moved_i - pivot, offset = target[index_i] - moved_i,
+    directions normals[index_i] and unit weights, the pivot the pairs' mean moved point.
+
+    Args:
+        moved: (N, 3) float64 source points after the current pose.
+        target: (M, 3) float64 target points; normals: (M, 3) their unit normals (those at the
+            paired points at least).
+        index: (N,) int64 each moved point's nearest target point (any value where unpaired).
+        distance: (N,) float64 its distance, inf where unpaired.
+
+    Returns:
+        (6, 6) matrix, (6,) rhs, (3,) pivot, and the number of pairs.
+    """
+    count = 0
+    px = py = pz = 0.0
+    for i in range(moved.shape[0]):
+        if np.isfinite(distance[i]):
+            count += 1
+            px += moved[i, 0]
+            py += moved[i, 1]
+            pz += moved[i, 2]
+    pivot = np.zeros(3)
+    matrix = np.zeros((6, 6))
+    rhs = np.zeros(6)
+    if count == 0:
+        return matrix, rhs, pivot, count
+    pivot[0], pivot[1], pivot[2] = px / count, py / count, pz / count
+    row = np.empty(6)
+    for i in range(moved.shape[0]):
+        if not np.isfinite(distance[i]):
+            continue
+        j = index[i]
+        ax, ay, az = moved[i, 0] - pivot[0], moved[i, 1] - pivot[1], moved[i, 2] - pivot[2]
+        dx, dy, dz = normals[j, 0], normals[j, 1], normals[j, 2]
+        row[0], row[1], row[2] = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
+        row[3], row[4], row[5] = dx, dy, dz
+        residual = (target[j, 0] - moved[i, 0]) * dx + (target[j, 1] - moved[i, 1]) * dy + (target[j, 2] - moved[i, 2]) * dz
+        for p in range(6):
+            rhs[p] += row[p] * residual
+            for q in range(p, 6):
+                matrix[p, q] += row[p] * row[q]
+    for p in range(6):
+        for q in range(p):
+            matrix[p, q] = matrix[q, p]
+    return matrix, rhs, pivot, count
