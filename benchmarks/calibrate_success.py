@@ -243,9 +243,6 @@ from logdesc_rt.metrics import SUCCESS_TRANSLATION_FRACTION as TRANSLATION_LIMIT
 TARGET_PRECISION = 0.97  # aim above the 95 % goal, for the margin between calibration and use
 # The fast exit skips the rest of verification: its claims must be right more often still.
 EXIT_TARGET_PRECISION = 0.99
-# The rows of a pair: the full verification's hypotheses and the fast exit's own, scored on the
-# working subsets (marked "exit"); a cache of rows without the latter is computed again.
-ROWS_FORMAT = 2
 L2_PENALTY = 1e-2
 REPORT = ROOT / "benchmarks" / "results" / "success_calibration"
 
@@ -316,32 +313,12 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
         RuntimeConfig(verification=config),
     )
     truth, scale = data["truth"], float(data["scale"])
-    target_working = data["target"][target_index]
     rows = []
-    # The fast exit's hypothesis, scored as the runtime scores it: on the working subsets
-    # (logdesc_rt.pose_selection.exit_verifier), apart from the full verification's.
-    exit_pose = dict(candidates).get(config.exit_estimator)
-    if exit_pose is not None and not with_init:
-        exit_checker = PoseVerifier(
-            data["source"][source_index], target_working, source_user, target_user, data["confidence"], scale, config
-        )
-        hypothesis = exit_checker.exit_hypothesis(config.exit_estimator, exit_pose)
-        unrefined = coarse_pose(hypothesis, source_user, target_user, data["confidence"], target_working, config)
-        rows.append({
-            "pair": f"{path.parent.name}/{path.stem}",
-            "group": path.parent.name,
-            "exit": True,
-            "estimators": [config.exit_estimator],
-            "refined": True,
-            "features": [hypothesis.features[name] for name in FEATURES],
-            "verified_right": is_right(hypothesis.verified_transformation, truth, scale),
-            "verified_error_deg": float(rotation_error_deg(hypothesis.verified_transformation[:3, :3], truth[:3, :3])),
-            "unrefined_right": is_right(unrefined, truth, scale),
-            "within_verified": exit_checker.pose_within_verified(unrefined, hypothesis),
-        })
     for hypothesis in verified.hypotheses:
         # What register() returns without ICP were this hypothesis chosen.
-        unrefined = coarse_pose(hypothesis, source_user, target_user, data["confidence"], target_working, config)
+        unrefined = coarse_pose(
+            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
+        )
         rows.append({
             "pair": f"{INIT_GROUP if with_init else path.parent.name}/{path.stem}",
             "group": INIT_GROUP if with_init else path.parent.name,
@@ -517,11 +494,9 @@ def fit(
     base = dataclasses.replace(base, **(settings or {}))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
-    # Rows are reused only for the same settings and the same kind of rows.
-    key = {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}
-    key["rows_format"] = ROWS_FORMAT
-    if cached.get("config") != key:
-        cached = {"config": key, "rows": {}}
+    if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
+        cached = {"config": {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")},
+                  "rows": {}}
     started = time.perf_counter()
     for group in groups:
         folder = cache / ("bunny_unbenchmarked" if group == INIT_GROUP else group)
@@ -577,7 +552,6 @@ def calibrate(rows: list[dict], base):
     VerificationConfig) with them filled in."""
     import dataclasses
 
-    all_rows, rows = rows, verified_rows(rows)
     features = np.array([row["features"] for row in rows])
     labels = np.array([row["verified_right"] for row in rows])
     # Each pair weighs one in total (pairs with many hypotheses do not dominate), and each group
@@ -591,7 +565,7 @@ def calibrate(rows: list[dict], base):
     weights = np.array([1.0 / per_pair[row["pair"]] / pairs_per_group[row["group"]] for row in rows])
     coefficients, bias = fit_logistic(features, labels, weights)
     fitted = dataclasses.replace(base, weights=tuple(coefficients.tolist()), bias=bias)
-    outcomes = flag_outcomes(rows, fitted)  # the full model's own choices: no exit model yet
+    outcomes = flag_outcomes(rows, fitted)
     pairs = sorted(outcomes)
     confidence = np.array([outcomes[p]["confidence"] for p in pairs])
     threshold = choose_threshold(confidence, np.array([outcomes[p]["refined_right"] for p in pairs]))
@@ -599,18 +573,13 @@ def calibrate(rows: list[dict], base):
     real_wrong = [outcomes[p]["confidence"] for p in pairs if p.startswith("bunny") and not outcomes[p]["refined_right"]]
     if real_wrong:
         threshold = max(threshold, float(np.ceil((max(real_wrong) + 1e-4) * 1e4) / 1e4))
-    return calibrate_exit(all_rows, dataclasses.replace(fitted, success_threshold=threshold))
+    return calibrate_exit(rows, dataclasses.replace(fitted, success_threshold=threshold))
 
 
 def exit_rows(rows: list[dict], estimator: str) -> list[dict]:
-    """Per pair, the hypothesis the fast exit scores: ``estimator``'s pose, refined and scored
-    on the working subsets (the rows :func:`pair_hypotheses` marks ``exit``)."""
-    return [row for row in rows if row.get("exit") and row["estimators"][0] == estimator]
-
-
-def verified_rows(rows: list[dict]) -> list[dict]:
-    """The hypotheses of the full verification (every row but the fast exit's)."""
-    return [row for row in rows if not row.get("exit")]
+    """Per pair, the hypothesis the fast exit scores: the one ``estimator`` leads (it is
+    refined and its features, but for agreement and margin, are those of the fast exit)."""
+    return [row for row in rows if row.get("estimators", [None])[0] == estimator and row.get("refined", False)]
 
 
 def exit_features(row: dict) -> np.ndarray:
@@ -668,7 +637,7 @@ def flag_outcomes(rows: list[dict], fitted) -> dict[str, dict]:
     from logdesc_rt.verification import logistic_confidence
 
     chosen: dict[str, tuple[float, dict]] = {}
-    for row in verified_rows(rows):
+    for row in rows:
         confidence = logistic_confidence(np.array(row["features"]), fitted)
         if row["pair"] not in chosen or confidence > chosen[row["pair"]][0]:
             chosen[row["pair"]] = (confidence, row)
@@ -733,7 +702,7 @@ def group_counts(rows: dict[str, list[dict]], fitted, classes: dict[str, str] | 
             count["unrefined_right"] += outcome["unrefined_right"]
             count["claimed"] += outcome["unrefined_claimed"]
             count["right_among_claimed"] += outcome["unrefined_claimed"] and outcome["unrefined_right"]
-            count["any_right"] += any(h["verified_right"] for h in verified_rows(hypotheses))
+            count["any_right"] += any(h["verified_right"] for h in hypotheses)
     return counts
 
 

@@ -2,8 +2,8 @@
 pose. The runtime (:meth:`Registrar.register`), training's validation and
 ``training/evaluate.py`` all read their poses here.
 
-    mutual matches -> the fast exit (the exit estimator's pose alone, refined and scored on the
-    working subsets; kept when the calibration's exit model is sure) -> else candidate poses
+    mutual matches -> the fast exit (the exit estimator's pose alone, refined and scored; kept
+    when the calibration's exit model is sure) -> else candidate poses
     (:mod:`logdesc_rt.pose.candidates`, network units, mapped back to the user frame) ->
     verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
@@ -60,7 +60,7 @@ def register_matched(
     """
     report = report if report is not None else (lambda message: None)
     timings = dict(pair.timings)
-    fast = None
+    verifier, fast = None, None
     fast_exit_applies = config.estimator == "auto" and initial is None and config.verification.fast_exit
     if fast_exit_applies and len(pair.matches) >= MIN_MATCHES:
         # The fast exit (logdesc_rt.verification): one estimator's pose, refined and scored alone.
@@ -68,12 +68,12 @@ def register_matched(
         with timed(timings, "pose"), one_thread_per_caller():
             exit_pose = dict(pair.candidates(config, estimators=(exit_estimator,))).get(exit_estimator)
         if exit_pose is not None:
-            report("verifying the leading pose on the working subsets")
+            report("verifying the leading pose on the full clouds")
             with timed(timings, "verification"), one_thread_per_caller():
-                exit_checker = exit_verifier(pair, config)
-                fast = exit_checker.fast_exit(exit_estimator, exit_pose)
-            if fast is not None:
-                return _verified_result(pair, config, timings, exit_checker, fast, report)
+                verifier = pose_verifier(pair, config)
+                fast = verifier.fast_exit(exit_estimator, exit_pose)
+    if fast is not None:
+        return _verified_result(pair, config, timings, verifier, fast, report)
     with timed(timings, "pose"), one_thread_per_caller():
         candidates = pair.candidates(config) if len(pair.matches) >= MIN_MATCHES else []
         if initial is not None:
@@ -97,7 +97,7 @@ def register_matched(
         f"({len(pair.source_points)} x {len(pair.target_points)} points)"
     )
     with timed(timings, "verification"), one_thread_per_caller():
-        verifier = pose_verifier(pair, config)
+        verifier = verifier if verifier is not None else pose_verifier(pair, config)
         verification = verify_candidates(verifier, candidates, pair.normalization, *pair.matched_network_points(), config)
     return _verified_result(pair, config, timings, verifier, verification, report, candidates)
 
@@ -108,23 +108,6 @@ def pose_verifier(pair: PairMatches, config: RuntimeConfig) -> PoseVerifier:
     return PoseVerifier(
         pair.source_points,
         pair.target_points,
-        pair.source_points[correspondences[:, 0]],
-        pair.target_points[correspondences[:, 1]],
-        pair.matches.confidence,
-        pair.normalization.scale,
-        config.verification,
-    )
-
-
-def exit_verifier(pair: PairMatches, config: RuntimeConfig) -> PoseVerifier:
-    """The fast exit's :class:`PoseVerifier`: the pair's working subsets (the points the network
-    saw, at most the working size per cloud) and its matches, user frame. Its work is bounded by
-    the working size, whatever the clouds' size; the exit model was fitted on the same subsets
-    (``benchmarks/calibrate_success.py``)."""
-    correspondences = pair.correspondences
-    return PoseVerifier(
-        pair.source_points[pair.source_index],
-        pair.target_points[pair.target_index],
         pair.source_points[correspondences[:, 0]],
         pair.target_points[correspondences[:, 1]],
         pair.matches.confidence,

@@ -62,15 +62,12 @@ stage produces) proposes alternatives, refined and scored with the rest:
 **The fast exit.** A calibration may carry a second logistic model, the exit model, over the
 features of one hypothesis alone (``EXIT_FEATURES``: no agreement, no margin). Before any other
 candidate is estimated, the exit estimator's pose (``VerificationConfig.exit_estimator``) is
-refined and scored on the pair's *working subsets* (the at most working-size points per cloud
-the network saw; :func:`~logdesc_rt.pose_selection.exit_verifier`), so that this path costs
-the same whatever the clouds' size; when the exit model's confidence reaches
-``exit_threshold`` (set on validation pairs, scored the same way, where such exits were right
-at least 99 % of the time), that hypothesis is kept with the exit model's confidence, and the
-other candidates, the second look and the rival scoring do not run
-(:meth:`PoseVerifier.fast_exit`). Otherwise every candidate is verified as above on the full
-clouds' subsets, and the flag is the full model's. ``VerificationResult.fast_exit`` says which
-path a pair took.
+refined and scored; when the exit model's confidence reaches ``exit_threshold`` (set on
+validation pairs where such exits were right at least 99 % of the time), that hypothesis is
+kept with the exit model's confidence, and the other candidates, the second look and the
+rival scoring do not run (:meth:`PoseVerifier.fast_exit`). Otherwise every candidate is
+verified as above, and the flag is the full model's. ``VerificationResult.fast_exit`` says
+which path a pair took.
 
 The features of the chosen hypothesis are taken *after* its short ICP, which measures whether
 the pose sits in the basin of a good alignment. When the caller does not refine, the
@@ -248,31 +245,25 @@ class PoseVerifier:
 
         Returns the one-hypothesis result when the exit model's confidence on its features
         (EXIT_FEATURES: those of this hypothesis alone) reaches ``exit_threshold``, else None
-        (the caller then verifies every candidate, :meth:`verify`). None as well without an
-        exit model. The runtime asks a verifier of the working subsets
-        (:func:`~logdesc_rt.pose_selection.exit_verifier`).
+        (the caller then verifies every candidate, :meth:`verify`; the refinement done here is
+        reused). None as well without an exit model.
         """
         if not self.config.fast_exit:
             return None
-        hypothesis = self.exit_hypothesis(estimator, pose)
-        if hypothesis.confidence < self.config.exit_threshold:
-            return None
-        return VerificationResult(best=hypothesis, hypotheses=(hypothesis,), candidate_count=1, fast_exit=True)
-
-    def exit_hypothesis(self, estimator: str, pose: np.ndarray) -> Hypothesis:
-        """``pose`` (user frame) as the fast exit scores it: refined, its features taken alone
-        (no agreement, no margin), its confidence the exit model's (0 without one). The
-        calibration scores its pairs' exits with this very call."""
         refined = self.refine(pose)
         features = self.features(refined)
-        return Hypothesis(
+        confidence = exit_confidence(features, self.config)
+        if confidence < self.config.exit_threshold:
+            return None
+        hypothesis = Hypothesis(
             estimators=(estimator,),
             transformation=pose,
             verified_transformation=refined,
             features=dict(zip(VERIFICATION_FEATURES, features.tolist(), strict=True)),
-            confidence=exit_confidence(features, self.config),
+            confidence=confidence,
             refined=True,
         )
+        return VerificationResult(best=hypothesis, hypotheses=(hypothesis,), candidate_count=1, fast_exit=True)
 
     def features(self, pose: np.ndarray, agreement: float = 0.0, margin: float = 0.0) -> np.ndarray:
         """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""

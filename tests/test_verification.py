@@ -892,14 +892,9 @@ def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_pe
         group = "bunny_unbenchmarked" if index % 50 == 0 else "val_in_range"
         rows.append({"pair": f"{group}/{index:04d}", "group": group, "estimators": ["fsr"], "refined": True,
                      "features": features, "verified_right": right, "unrefined_right": right, "within_verified": True})
-
-    def with_exit_rows(rows: list[dict]) -> list[dict]:
-        # Each pair's hypothesis as the full verification and as the fast exit scored it.
-        return rows + [{**row, "exit": True} for row in rows]
-
-    fitted = calibrate_success.calibrate_exit(with_exit_rows(rows), VerificationConfig())
+    fitted = calibrate_success.calibrate_exit(rows, VerificationConfig())
     assert fitted.fast_exit and 0.0 < fitted.exit_threshold < 1.0
-    outcomes = calibrate_success.flag_outcomes(with_exit_rows(rows), fitted)
+    outcomes = calibrate_success.flag_outcomes(rows, fitted)
     exits = [outcome for outcome in outcomes.values() if outcome["fast_exit"]]
     assert len(exits) > 100
     assert np.mean([outcome["refined_right"] for outcome in exits]) >= calibrate_success.EXIT_TARGET_PRECISION
@@ -908,7 +903,7 @@ def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_pe
     # Nothing separable: no exit at all.
     for row in rows:
         row["verified_right"] = row["unrefined_right"] = bool(rng.random() < 0.5)
-    assert not calibrate_success.calibrate_exit(with_exit_rows(rows), VerificationConfig()).fast_exit
+    assert not calibrate_success.calibrate_exit(rows, VerificationConfig()).fast_exit
 
 
 def test_thorough_verifies_every_candidate_even_where_the_fast_exit_is_sure(registrar, demo_pair):
