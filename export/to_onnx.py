@@ -34,6 +34,7 @@ from logdesc_rt.network import (  # noqa: E402
     DESCRIPTOR_FILE,
     MANIFEST_NAME,
     MATCHER_FILE,
+    POINT_AXES,
     ModelManifest,
     bundled_model_dir,
     sha256_of,
@@ -78,10 +79,11 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
         "points_source": torch.randn(1, n, 3, generator=generator),
         "points_target": torch.randn(1, m, 3, generator=generator),
     }
-    point_axis = {name: ("m" if name.endswith("_target") else "n") for name in examples}
+    source_axis, target_axis = POINT_AXES  # the runtime fixes them by name (OnnxNetwork.fixed_points)
+    point_axis = {name: (target_axis if name.endswith("_target") else source_axis) for name in examples}
     graphs = (
-        (DescribeModule(model), model.describe_inputs, "descriptors", {1: "n"}, DESCRIPTOR_FILE),
-        (MatchScoresModule(model), model.match_inputs, "scores", {1: "n", 2: "m"}, MATCHER_FILE),
+        (DescribeModule(model), model.describe_inputs, "descriptors", {1: source_axis}, DESCRIPTOR_FILE),
+        (MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: target_axis}, MATCHER_FILE),
     )
     with torch.no_grad():
         for module, input_names, output_name, output_axes, file_name in graphs:

@@ -103,6 +103,8 @@ class Registrar:
         self.config = self.resolver.resolved(config)
         self.max_points = self.config.subsampling.max_points
         self.subsampling = self.config.subsampling.method
+        # Clouds larger than the working size reach the networks at exactly that size.
+        self.network.fixed_points = self.max_points
 
     # -- public API -------------------------------------------------------------------------
 

@@ -309,3 +309,32 @@ def test_fitness_is_computed_on_a_bounded_seeded_subset_of_the_source(registrar,
     again = registrar.register(demo_pair.source, demo_pair.target, config=bounded_config)
     assert again.fitness == bounded.fitness
     assert bounded.to_dict()["fitness_points"] == 100
+
+
+def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_with_the_dynamic_ones(registrar, demo_pair):
+    """Clouds cut to the working size reach the networks through sessions with fixed point axes
+    (OnnxNetwork.fixed_points); their outputs are the dynamic graphs' within float32 rounding,
+    and any other size runs the dynamic sessions."""
+    from logdesc_rt.network import DESCRIPTOR_FILE, MATCHER_FILE, OnnxNetwork
+
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    working = registrar.max_points
+    assert len(prepared.source_index) == len(prepared.target_index) == working
+    fixed = OnnxNetwork(fixed_points=working)
+    dynamic = OnnxNetwork()
+    source, target = prepared.source_geometry, prepared.target_geometry
+
+    def outputs(network: OnnxNetwork) -> tuple[np.ndarray, np.ndarray]:
+        descriptors = [network.describe(g.edges, p, g.normals) for g, p in
+                       ((source, prepared.source_network), (target, prepared.target_network))]
+        scores = network.match_scores(*descriptors, source.normals, target.normals,
+                                      prepared.source_network, prepared.target_network)
+        return descriptors[0], scores
+
+    for fixed_output, dynamic_output in zip(outputs(fixed), outputs(dynamic), strict=True):
+        np.testing.assert_allclose(fixed_output, dynamic_output, rtol=1e-4, atol=1e-5)
+    assert set(fixed._fixed_sessions) == {DESCRIPTOR_FILE, MATCHER_FILE} and not dynamic._fixed_sessions
+
+    smaller = OnnxNetwork(fixed_points=working)
+    smaller.describe(source.edges[:200], prepared.source_network[:200], source.normals[:200])
+    assert not smaller._fixed_sessions
