@@ -332,7 +332,8 @@ def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_wit
         return descriptors[0], scores
 
     for fixed_output, dynamic_output in zip(outputs(fixed), outputs(dynamic), strict=True):
-        np.testing.assert_allclose(fixed_output, dynamic_output, rtol=1e-4, atol=1e-5)
+        # float32 rounding through the layers: within 2e-5 of the output's largest magnitude
+        assert np.abs(fixed_output - dynamic_output).max() <= 2e-5 * np.abs(dynamic_output).max()
     assert set(fixed._fixed_sessions) == {DESCRIPTOR_FILE, MATCHER_FILE} and not dynamic._fixed_sessions
 
     smaller = OnnxNetwork(fixed_points=working)
