@@ -17,8 +17,9 @@ threadpoolctl (BSD-3, the scikit-learn team's) finds the libraries loaded in the
 and restores their counts; onnxruntime's own thread pools are not among them and keep their
 ``threads``.
 
-The stages done once per cloud (the working subset, the geometry) run for the two clouds at once
-(:func:`per_cloud`), on one long-lived worker thread and the caller's. Measured in one process on
+The stages done once per cloud (the working subset and its extent, the geometry, verification's
+normals) run for the two clouds at once (:func:`per_cloud`), on one long-lived worker thread and
+the caller's. Measured in one process on
 the 2-core machine, 1024-point clouds of ``benchmarks/latency.py``, three rounds: working subsets
 3.6-3.7 ms one after the other, 2.5-3.5 ms side by side; geometry 6.6-8.4 against 4.5-5.5 ms.
 """
