@@ -1,6 +1,6 @@
 """CPU latency of logdesc-rt against cloud size, beside torch eager and Open3D.
 
-    python benchmarks/latency.py [--sizes 512 1024 2048 4096] [--repeats 5]
+    python benchmarks/latency.py [--sizes 512 1024 2048 4096] [--repeats 5] [--rounds 1]
         [--threads 2] [--no-torch] [--no-open3d] [--out benchmarks/results]
 
 Writes ``latency.md``, ``latency.json`` and ``latency_vs_points.png`` into ``--out``.
@@ -720,6 +720,39 @@ def open3d_table(results: dict[int, dict]) -> list[str]:
     return lines
 
 
+def round_summary(results: dict) -> dict:
+    """One round's medians: logdesc-rt's wall and each Open3D peer's, ms, per size."""
+    summary = {}
+    for size, result in results.items():
+        if "onnxruntime" not in result:
+            continue
+        peers = result.get("open3d") or {"methods": {}}
+        summary[str(size)] = {
+            "logdesc_rt_wall_ms": result["onnxruntime"]["stages"]["wall"]["median_ms"],
+            **{f"{name}_ms": peers["methods"][name]["median_ms"] for name in OPEN3D_PEERS if name in peers["methods"]},
+        }
+    return summary
+
+
+def rounds_table(rounds: list[dict]) -> list[str]:
+    """Per size, each round's logdesc-rt and FPFH + RANSAC medians and their ratio."""
+    peer = OPEN3D_PEERS[0]
+    lines = header([f"round {i + 1}: logdesc-rt / FPFH + RANSAC ms, ratio" for i in range(len(rounds))]
+                   + ["median ratio"])
+    for size in rounds[0]:
+        cells, ratios = [], []
+        for summary in rounds:
+            ours, theirs = summary[size]["logdesc_rt_wall_ms"], summary[size].get(f"{peer}_ms")
+            if theirs is None:
+                cells.append(f"{format_ms(ours)} / -")
+                continue
+            ratios.append(theirs / ours)
+            cells.append(f"{format_ms(ours)} / {format_ms(theirs)}, {format_ratio(ratios[-1])}")
+        cells.append(format_ratio(float(np.median(ratios))) if ratios else "")
+        lines.append(row(size, cells))
+    return lines
+
+
 def startup_table(results: dict[int, dict]) -> list[str]:
     lines = header(["Registrar() ms", "first register ms", "torch load_model ms"])
     for size, result in results.items():
@@ -803,6 +836,18 @@ def markdown_report(payload: dict) -> str:
         lines += [*open3d_table(results), ""]
     else:
         lines += ["(not measured)", ""]
+    if len(payload.get("rounds", [])) > 1 and any(
+        f"{OPEN3D_PEERS[0]}_ms" in sizes for summary in payload["rounds"] for sizes in summary.values()
+    ):
+        lines += [
+            f"## Rounds ({len(payload['rounds'])}, one after the other)",
+            "",
+            "Every child ran once per round; the tables above are the last round's. Per round: "
+            "logdesc-rt's wall median and FPFH + RANSAC's, and their ratio (> 1: logdesc-rt faster).",
+            "",
+            *rounds_table(payload["rounds"]),
+            "",
+        ]
     lines += [
         "## Start-up, once per process (in none of the tables above)",
         "",
@@ -910,6 +955,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--no-open3d", action="store_true", help="skip the Open3D peers"
     )
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="run every child this many times, one round after the other; the report's tables are "
+        "the last round's, and a table gives each round's logdesc-rt / Open3D times and ratio "
+        "(the machine's drift between children moves single ratios)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
     # The child's side of the parent / child protocol (see run_child).
     parser.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
@@ -974,12 +1025,13 @@ def main(argv=None) -> int:
     if not args.no_real_pair:
         pairs[REAL_PAIR] = real_scan_pair()
         sizes = sizes + [REAL_PAIR]
-    results: dict = {size: {} for size in sizes}
+    rounds: list[dict] = []
     baselines: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="latency_") as folder:
         inputs = Path(folder) / "inputs.npz"
         save_inputs(inputs, pairs, args.model_dir)
-        tasks = child_tasks(sizes, use["torch"], use["open3d"])
+        tasks = child_tasks(sizes, use["torch"], use["open3d"]) * args.rounds
+        results: dict = {}
         with tqdm(tasks, desc="latency", unit="child", dynamic_ncols=True) as bar:
             for kind, size in bar:
                 library = (
@@ -987,7 +1039,10 @@ def main(argv=None) -> int:
                 )
                 if library and not use[library]:
                     continue  # found unusable by an earlier child
-                bar.set_postfix_str(f"{kind} N={size}")
+                if kind == "baseline_onnxruntime":  # each round starts here
+                    results = {size: {} for size in sizes}
+                    rounds.append(results)
+                bar.set_postfix_str(f"{kind} N={size} round {len(rounds)}")
                 result = run_child(kind, size, inputs, args)
                 if result.get("available") is False:
                     message = f"{library} is not usable ({result['reason']})."
@@ -1020,6 +1075,7 @@ def main(argv=None) -> int:
         "memory_metric": "VmHWM of /proc/self/status, KiB (ru_maxrss for reference)",
         "baselines": baselines,
         "results": results,
+        "rounds": [round_summary(round_results) for round_results in rounds],
     }
     markdown = markdown_report(payload)
     md_path, json_path = write_report(args.stem, markdown, payload, args.out)

@@ -451,3 +451,22 @@ def test_a_runner_with_other_parameters_shares_the_network():
     other = runner.with_parameters(scans)
     assert other.methods == runner.methods and other.parameters == scans != runner.parameters
     assert other.registrar is runner.registrar
+
+
+def test_the_latency_rounds_table_gives_each_rounds_ratio_and_their_median():
+    """benchmarks/latency.py --rounds: one ratio (Open3D FPFH + RANSAC's median over ours) per
+    round and size, and their median; a size without Open3D gives no ratio."""
+    import latency
+
+    def result(ours_ms: float, theirs_ms: float | None) -> dict:
+        wall = {"median_ms": ours_ms, "p90_ms": ours_ms, "samples": 1}
+        peers = None if theirs_ms is None else {"methods": {"fpfh_ransac": {"median_ms": theirs_ms}}}
+        return {"onnxruntime": {"stages": {"wall": wall}}, "open3d": peers}
+
+    rounds = [latency.round_summary({1024: result(50.0, theirs), 512: result(40.0, None)})
+              for theirs in (40.0, 60.0, 55.0)]
+    table = latency.rounds_table(rounds)
+    row_1024 = next(line for line in table if line.startswith("| 1024 |"))
+    assert "0.80x" in row_1024 and "1.20x" in row_1024 and row_1024.endswith("| 1.10x |")
+    row_512 = next(line for line in table if line.startswith("| 512 |"))
+    assert row_512.endswith("|  |") and "x" not in row_512
