@@ -8,9 +8,11 @@ pose estimators on logdesc-rt's matches see the same matches:
   (:meth:`logdesc_rt.Registrar.match`), then FSR (the default), confidence-weighted SVD or our
   RANSAC on its mutual matches;
 - ``logdesc_auto``, ``logdesc_auto_icp``: what ``register()`` returns by default, from the
-  same matches (:meth:`logdesc_rt.Registrar.register_matches`): every candidate pose
-  verified on the full clouds, the best kept, and the success flag; without and with
-  point-to-plane ICP. Their records carry the flag (``flagged_success``, ``confidence``);
+  same matches (:meth:`logdesc_rt.Registrar.register_matches`): the fast exit, or every
+  candidate pose verified on the full clouds, the best kept, and the success flag; without and
+  with point-to-plane ICP; ``logdesc_thorough``: ``register(..., thorough=True)``, every
+  candidate verified on every pair. Their records carry the flag (``flagged_success``,
+  ``confidence``);
 - ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
   MVP-RG table does;
@@ -62,7 +64,12 @@ from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
-VERIFIED_METHODS = {"logdesc_auto": None, "logdesc_auto_icp": "point_to_plane"}  # method -> refine
+# method -> register()'s (refine, thorough)
+VERIFIED_METHODS = {
+    "logdesc_auto": (None, False),
+    "logdesc_auto_icp": ("point_to_plane", False),
+    "logdesc_thorough": (None, True),
+}
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
 KISS_METHODS = ("kiss_matcher",)
@@ -368,9 +375,9 @@ class MethodRunner:
                 results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
         if "logdesc_fsr_icp" in self.methods:
             results["logdesc_fsr_icp"] = self._refined(source, target, results["logdesc_fsr"], pair.normalization.scale)
-        for name, refine in VERIFIED_METHODS.items():
+        for name, (refine, thorough) in VERIFIED_METHODS.items():
             if name in self.methods:
-                results[name] = self._verified(pair, refine, seed, match_seconds, pred_match)
+                results[name] = self._verified(pair, refine, thorough, seed, match_seconds, pred_match)
         if any(m in self.methods for m in DESCRIPTOR_METHODS):
             describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
             results.update(
@@ -388,10 +395,11 @@ class MethodRunner:
             )
         return results
 
-    def _verified(self, pair, refine, seed, match_seconds, pred_match) -> MethodResult:
-        """register()'s default pipeline from the matches: verified candidates, the flag."""
+    def _verified(self, pair, refine, thorough, seed, match_seconds, pred_match) -> MethodResult:
+        """register()'s pipeline from the matches: verified candidates, the flag (``thorough``:
+        every candidate verified, no fast exit)."""
         start = time.perf_counter()
-        result = self.registrar.register_matches(pair, refine=refine, seed=seed)  # a failure is a result
+        result = self.registrar.register_matches(pair, refine=refine, seed=seed, thorough=thorough)  # a failure is a result
         seconds = match_seconds + time.perf_counter() - start
         failed = result.pose_estimator == "none"  # no pose could be estimated (too few matches)
         fast_exit = bool(result.verification is not None and result.verification.fast_exit)

@@ -91,15 +91,16 @@ def test_success_by_overlap_bins_each_pair_once_and_counts_its_successes():
 
 
 def test_verified_methods_are_what_register_returns(shared_data):
-    """logdesc_auto(_icp) record register()'s pose and flag, from the shared matches."""
+    """logdesc_auto(_icp) and logdesc_thorough record register()'s pose and flag, from the shared
+    matches."""
     from logdesc_rt import Registrar
 
     pair = next(common.modelnet10_test_pairs(["partial"], count=1))
     runner = methods.MethodRunner(("logdesc_fsr", *methods.VERIFIED_METHODS))
     results = runner.run(pair.source, pair.target, seed=5)
     registrar = Registrar()
-    for name, refine in methods.VERIFIED_METHODS.items():
-        expected = registrar.register(pair.source, pair.target, refine=refine, seed=5)
+    for name, (refine, thorough) in methods.VERIFIED_METHODS.items():
+        expected = registrar.register(pair.source, pair.target, refine=refine, seed=5, thorough=thorough)
         assert np.array_equal(results[name].transformation, expected.transformation)
         record = common.pair_record(pair, name, results[name])
         assert record["flagged_success"] == expected.success and record["confidence"] == expected.confidence
