@@ -40,11 +40,18 @@ def _cache_in_the_user_directory() -> None:
 _cache_in_the_user_directory()
 
 
-def jit(function):
+def jit(function=None, *, inline: bool = False):
     """``numba.njit(cache=True, nogil=True)``, or without the cache where no cache directory is
     writable. ``nogil``: the runtime computes the geometry of two clouds in two threads, which
-    then run at once instead of taking turns on the interpreter lock."""
-    try:
-        return njit(cache=True, nogil=True)(function)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True)(function)
+    then run at once instead of taking turns on the interpreter lock. ``@jit(inline=True)``: a
+    small helper compiled into each kernel that calls it (numba's ``inline="always"``), where a
+    call per point would cost more than the helper's arithmetic."""
+    options = {"nogil": True, **({"inline": "always"} if inline else {})}
+
+    def compiled(function):
+        try:
+            return njit(cache=True, **options)(function)
+        except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+            return njit(**options)(function)
+
+    return compiled if function is None else compiled(function)

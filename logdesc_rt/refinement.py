@@ -145,10 +145,16 @@ class _TargetNormals:
 
     def at(self, index: np.ndarray) -> np.ndarray:
         """(K, 3) normals of the points ``index`` (K,) int."""
-        return self.covering(index)[index]
+        self._compute(index)
+        return self.normals[index]
 
-    def covering(self, index: np.ndarray) -> np.ndarray:
-        """(M, 3) the normals of every point, computed at least at ``index`` (K,) int."""
+    def covering(self, index: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """(M, 3) the normals of every point, computed at least where a k-d tree query's
+        ``index`` (N,) int pairs a point (a finite ``distance`` (N,))."""
+        self._compute(index[np.isfinite(distance)])
+        return self.normals
+
+    def _compute(self, index: np.ndarray) -> None:
         missing = np.unique(index[~self.known[index]])
         if len(missing):
             k = self.neighbours
@@ -157,7 +163,6 @@ class _TargetNormals:
                 np.ascontiguousarray(self.points, dtype=np.float64), neighbour_index.reshape(len(missing), k).astype(np.int64)
             )
             self.known[missing] = True
-        return self.normals
 
 
 def icp(
@@ -289,7 +294,7 @@ class _GivenNormals:
     def at(self, index: np.ndarray) -> np.ndarray:
         return self.normals[index]
 
-    def covering(self, index: np.ndarray) -> np.ndarray:
+    def covering(self, index: np.ndarray, distance: np.ndarray) -> np.ndarray:
         return self.normals
 
 
@@ -317,7 +322,7 @@ def _icp_stage(
             # The pairs' normal equations straight from the query (no gathered copies of them).
             index = index.astype(np.int64, copy=False)
             matrix, rhs, pivot, pairs = correspondence_plane_equations(
-                moved, target, normals.covering(index[np.isfinite(distance)]), index, distance
+                moved, target, normals.covering(index, distance), index, distance
             )
             if pairs < MIN_CORRESPONDENCES:
                 return pose, iteration - 1, "too_few_correspondences"

@@ -163,14 +163,10 @@ def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _tree_spacing_normals(points: np.ndarray, with_tree: bool = True) -> tuple:
-    """(k-d tree, median nearest-neighbour distance, (N, 3) normals) of (N, 3) ``points``; only
-    ``(normals,)`` when ``with_tree`` is False."""
-    if not with_tree:
-        return (estimate_normals(points),)
+def _tree_and_normals(points: np.ndarray) -> tuple[KDTree, np.ndarray]:
+    """A k-d tree of (N, 3) ``points`` and their (N, 3) normals (:func:`estimate_normals`)."""
     tree = KDTree(points)
-    spacing, _ = tree.query(points, k=2)
-    return tree, float(np.median(spacing[:, 1])), estimate_normals(points, tree=tree)
+    return tree, estimate_normals(points, tree=tree)
 
 
 def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
@@ -222,10 +218,11 @@ class PoseVerifier:
         self.distance = config.distance_fraction * scale
         # One tree of the scored target serves the spacing, every pose's query and its normals.
         # The two subsets' normals (most of this set-up's time) are computed side by side.
-        (self.target_tree, target_spacing, self.target_normals), (self.source_normals,) = per_cloud(
-            _tree_spacing_normals, (self.target,), (self.source, False)
+        (self.target_tree, self.target_normals), (_, self.source_normals) = per_cloud(
+            _tree_and_normals, (self.target,), (self.source,)
         )
-        self.sharp_distance = config.sharp_factor * target_spacing
+        spacing, _ = self.target_tree.query(self.target, k=2)
+        self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
         self.match_tolerance = config.match_tolerance * scale
         self.centre = self.source.mean(axis=0)
         # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).

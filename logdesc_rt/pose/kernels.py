@@ -102,6 +102,28 @@ def neighbourhood_normals(points: np.ndarray, neighbour_index: np.ndarray) -> np
     return normals
 
 
+@jit(inline=True)
+def _add_plane_pair(matrix, rhs, row, ax, ay, az, dx, dy, dz, offset_along, weight):
+    """Add one pair to the upper triangle of ``matrix`` (6, 6) and to ``rhs`` (6,): Jacobian
+    row [arm x d, d] (written into ``row`` (6,)), residual ``offset_along`` (offset . d)."""
+    row[0], row[1], row[2] = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
+    row[3], row[4], row[5] = dx, dy, dz
+    residual = weight * offset_along
+    for p in range(6):
+        weighted = weight * row[p]
+        rhs[p] += row[p] * residual
+        for q in range(p, 6):
+            matrix[p, q] += weighted * row[q]
+
+
+@jit(inline=True)
+def _mirror_upper_triangle(matrix):
+    """Copy the upper triangle of ``matrix`` (6, 6) into its lower one."""
+    for p in range(6):
+        for q in range(p):
+            matrix[p, q] = matrix[q, p]
+
+
 @jit
 def plane_normal_equations(arm: np.ndarray, offset: np.ndarray, directions: np.ndarray, weights: np.ndarray):
     """(6, 6) J^T W J and (6,) J^T W r for residuals r_k = offset_k . d_k, Jacobian rows
@@ -115,20 +137,12 @@ def plane_normal_equations(arm: np.ndarray, offset: np.ndarray, directions: np.n
     rhs = np.zeros(6)
     row = np.empty(6)
     for i in range(arm.shape[0]):
-        ax, ay, az = arm[i, 0], arm[i, 1], arm[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        row[0], row[1], row[2] = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
-        row[3], row[4], row[5] = dx, dy, dz
-        weight = weights[i]
-        residual = weight * (offset[i, 0] * dx + offset[i, 1] * dy + offset[i, 2] * dz)
-        for p in range(6):
-            weighted = weight * row[p]
-            rhs[p] += row[p] * residual
-            for q in range(p, 6):
-                matrix[p, q] += weighted * row[q]
-    for p in range(6):
-        for q in range(p):
-            matrix[p, q] = matrix[q, p]
+        _add_plane_pair(
+            matrix, rhs, row, arm[i, 0], arm[i, 1], arm[i, 2], dx, dy, dz,
+            offset[i, 0] * dx + offset[i, 1] * dy + offset[i, 2] * dz, weights[i],
+        )
+    _mirror_upper_triangle(matrix)
     return matrix, rhs
 
 
@@ -172,16 +186,11 @@ def correspondence_plane_equations(
         if not np.isfinite(distance[i]):
             continue
         j = index[i]
-        ax, ay, az = moved[i, 0] - pivot[0], moved[i, 1] - pivot[1], moved[i, 2] - pivot[2]
         dx, dy, dz = normals[j, 0], normals[j, 1], normals[j, 2]
-        row[0], row[1], row[2] = ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx
-        row[3], row[4], row[5] = dx, dy, dz
-        residual = (target[j, 0] - moved[i, 0]) * dx + (target[j, 1] - moved[i, 1]) * dy + (target[j, 2] - moved[i, 2]) * dz
-        for p in range(6):
-            rhs[p] += row[p] * residual
-            for q in range(p, 6):
-                matrix[p, q] += row[p] * row[q]
-    for p in range(6):
-        for q in range(p):
-            matrix[p, q] = matrix[q, p]
+        _add_plane_pair(
+            matrix, rhs, row, moved[i, 0] - pivot[0], moved[i, 1] - pivot[1], moved[i, 2] - pivot[2], dx, dy, dz,
+            (target[j, 0] - moved[i, 0]) * dx + (target[j, 1] - moved[i, 1]) * dy + (target[j, 2] - moved[i, 2]) * dz,
+            1.0,
+        )
+    _mirror_upper_triangle(matrix)
     return matrix, rhs, pivot, count
