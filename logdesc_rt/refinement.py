@@ -125,6 +125,7 @@ def refine_pose(source, target, initial: np.ndarray, max_distance: float, config
         tolerance=config.tolerance,
         adaptive=config.adaptive,
         max_source_points=config.max_source_points,
+        coarse_source_points=config.coarse_source_points,
         seed=config.seed,
     )
 
@@ -176,6 +177,7 @@ def icp(
     adaptive: bool = False,
     target_normals: np.ndarray | None = None,
     max_source_points: int | None = None,
+    coarse_source_points: int | None = None,
     seed: int = 0,
 ) -> IcpResult:
     """Refine ``initial`` by iterative closest points.
@@ -198,6 +200,12 @@ def icp(
             points (None: all). Its correspondences pull the pose as the whole cloud's do, at a
             fraction of the cost of a large cloud; the target is used whole. The adaptive
             stages read the target's point spacing from as many of its points.
+        coarse_source_points: with ``adaptive``, the stages iterate on a seeded subset of at
+            most this many of those source points, and one more stage at the last stage's
+            distance then polishes the pose on all of them (None: every stage on all). The
+            stages only bring the pose near the fixed point of the last distance, which the
+            polish reaches from there in a few iterations: on 40k-point scans about a third of
+            the work for the same pose within ICP's tolerance (:class:`~logdesc_rt.config.RefinementConfig`).
         seed: seeds those subsets.
 
     Returns:
@@ -217,8 +225,9 @@ def icp(
         raise ValueError(f"max_distance: {max_distance} must be finite and > 0")
     if max_iterations < 1:
         raise ValueError(f"max_iterations: {max_iterations} must be >= 1")
-    if max_source_points is not None and max_source_points < MIN_CORRESPONDENCES:
-        raise ValueError(f"max_source_points: {max_source_points} must be None or >= {MIN_CORRESPONDENCES}")
+    for name, count in (("max_source_points", max_source_points), ("coarse_source_points", coarse_source_points)):
+        if count is not None and count < MIN_CORRESPONDENCES:
+            raise ValueError(f"{name}: {count} must be None or >= {MIN_CORRESPONDENCES}")
     source = as_points(source, name="source", min_points=1)
     target = as_points(target, name="target", min_points=3)
     initial = check_rigid_transformation(initial, name="initial")
@@ -253,19 +262,29 @@ def icp(
         spaced = target_working[seeded_subset(len(target_working), max_source_points, generator)]
         spacing, _ = tree.query(spaced, k=2)
         floor = SPACING_MULTIPLE * float(np.median(spacing[:, 1]))
+    # The stages' source points: a coarse subset when one is asked for and smaller (see above).
+    staged = source_working
+    if adaptive and coarse_source_points is not None and coarse_source_points < len(source_working):
+        staged = source_working[seeded_subset(len(source_working), coarse_source_points, generator)]
     stage_distance, iterations, stop_reason = 1.0, 0, "max_iterations"
     for _ in range(MAX_STAGES if adaptive else 1):
+        last_distance = stage_distance
         pose, used, stop_reason = _icp_stage(
-            source_working, target_working, tree, normals, pose, stage_distance, max_iterations, tolerance
+            staged, target_working, tree, normals, pose, stage_distance, max_iterations, tolerance
         )
         iterations += used
         if stop_reason == "too_few_correspondences" or stage_distance / 2 < floor:
             break
-        distance, _ = tree.query(source_working @ pose[:3, :3].T + pose[:3, 3], k=1, distance_upper_bound=stage_distance)
+        distance, _ = tree.query(staged @ pose[:3, :3].T + pose[:3, 3], k=1, distance_upper_bound=stage_distance)
         inliers = np.count_nonzero(np.isfinite(distance))
         if np.count_nonzero(distance < stage_distance / 2) < KEEP_SHARE * inliers:
             break
         stage_distance /= 2
+    if staged is not source_working and stop_reason != "too_few_correspondences":
+        pose, used, stop_reason = _icp_stage(
+            source_working, target_working, tree, normals, pose, last_distance, max_iterations, tolerance
+        )
+        iterations += used
 
     moved = source_working @ pose[:3, :3].T + pose[:3, 3]
     distance, _ = tree.query(moved, k=1, distance_upper_bound=1.0)

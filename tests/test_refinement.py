@@ -115,6 +115,42 @@ def test_icp_on_a_source_subset_lands_where_the_whole_cloud_does(scan_pair, shar
         icp(full_source, target, start, 0.005, max_source_points=2)
 
 
+def test_coarse_stages_land_where_every_stage_on_all_points_does(scan_pair, shared_data):
+    """Adaptive stages on a coarse subset, then the polish at the last distance on the whole
+    (coarse_source_points): on the real bun000 -> bun045 pair (40k points each) the pose agrees
+    with every stage run on all points within 1e-3 degree and 0.01 mm, deterministically."""
+    _, target, _, start = scan_pair
+    full_source, _, _ = bunny_pair(shared_data, "bun000", "bun045")
+    options = dict(adaptive=True, max_source_points=20_000, seed=3)
+    every = icp(full_source, target, start, 0.005, **options)
+    coarse = icp(full_source, target, start, 0.005, coarse_source_points=2000, **options)
+    again = icp(full_source, target, start, 0.005, coarse_source_points=2000, **options)
+    np.testing.assert_array_equal(coarse.transformation, again.transformation)
+    assert rotation_error_deg(coarse.transformation[:3, :3], every.transformation[:3, :3]) < 1e-3
+    centre = full_source.mean(axis=0)
+    moved = lambda pose: pose[:3, :3] @ centre + pose[:3, 3]  # noqa: E731
+    assert np.linalg.norm(moved(coarse.transformation) - moved(every.transformation)) < 1e-5
+    assert coarse.fitness == pytest.approx(every.fitness, abs=1e-3)
+
+
+def test_coarse_subset_changes_nothing_on_a_cloud_it_covers():
+    """A source of at most coarse_source_points points refines exactly as without the option,
+    and a coarse size below the minimum of correspondences is refused by name."""
+    generator = np.random.default_rng(5)
+    u, v = generator.uniform(-1.0, 1.0, size=(2, 3000))
+    target = np.column_stack([u, v, 0.2 * np.sin(2.0 * u) * np.cos(3.0 * v)])
+    start = np.eye(4)
+    start[:3, :3] = Rotation.from_euler("xyz", [2.0, -1.0, 3.0], degrees=True).as_matrix()
+    start[:3, 3] = [0.02, -0.01, 0.03]
+    source = target[:2500] + generator.normal(scale=0.002, size=(2500, 3))
+    plain = icp(source, target, start, 0.1, adaptive=True)
+    covered = icp(source, target, start, 0.1, adaptive=True, coarse_source_points=2500)
+    np.testing.assert_array_equal(covered.transformation, plain.transformation)
+    assert covered.iterations == plain.iterations
+    with pytest.raises(ValueError, match="coarse_source_points"):
+        icp(source, target, start, 0.1, coarse_source_points=2)
+
+
 @pytest.mark.parametrize("steps, stops_after", [((1, -1), 2), ((1, 1, -2), 3)])
 def test_icp_stops_when_its_pose_comes_back(monkeypatch, steps, stops_after):
     """A stage whose updates go round (correspondences flipping between sets, as on source subsets

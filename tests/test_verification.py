@@ -137,6 +137,8 @@ def test_runtime_config_round_trips_and_merges_partial_dicts():
         RuntimeConfig.from_dict({"icp": {}})
     with pytest.raises(ValueError, match="estimator"):
         RuntimeConfig(estimator="magic")
+    with pytest.raises(ValueError, match="RefinementConfig.coarse_source_points"):
+        RefinementConfig(coarse_source_points=5)
     with pytest.raises(ValueError, match="resolve"):  # verification None: the model's, unknown here
         config.with_seed(7)
     seeded = dataclasses.replace(config, verification=VerificationConfig()).with_seed(7)
