@@ -580,7 +580,9 @@ class RefinementConfig(_DictMixin):
             uniform subset of at most this many source points (None: all of them), each
             against the whole target; the result's ``fitness_points`` says how many. The
             work then stays bounded on large clouds: one k-d tree of the target and one
-            bounded query (a share of 20,000 samples has a standard error below 0.004).
+            bounded query (a share of 20,000 samples has a standard error below 0.004). After
+            ICP, when this equals ``max_source_points``, ICP's last query on the same subset
+            is that evaluation: no second tree.
         seed: seeds those subsets.
     """
 

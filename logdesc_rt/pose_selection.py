@@ -25,7 +25,7 @@ from .pair import MIN_MATCHES, PairMatches
 from .pose import evaluate_registration
 from .pose.candidates import unexplained_candidate_poses
 from .pose.svd import refine_on_inliers, solve_rigid_batch, to_homogeneous, transformation_inliers
-from .refinement import estimate_normals, plane_fit_step, refine_pose
+from .refinement import IcpResult, estimate_normals, plane_fit_step, refine_pose
 from .results import RegistrationResult
 from .sampling import seeded_subset
 from .threads import one_thread_per_caller
@@ -162,6 +162,7 @@ def _verified_result(
     success = bool(confidence >= threshold)
     return _judged_result(
         pair, config, timings, distance, refined,
+        icp_evaluation=icp_result if refinement.max_source_points == refinement.evaluation_points else None,
         pose_estimator=chosen_estimator,
         refinement=refinement.method,
         transformation_before_refinement=pose,
@@ -278,25 +279,33 @@ def verify_candidates(
 
 def _judged_result(
     pair: PairMatches, config: RuntimeConfig, timings: dict[str, float], distance: float,
-    transformation: np.ndarray, **outcome,
+    transformation: np.ndarray, icp_evaluation: IcpResult | None = None, **outcome,
 ) -> RegistrationResult:
     """The result of ``pair`` with its returned ``transformation``: fitness and inlier RMSE on
     the full target at ``distance`` (over at most ``evaluation_points`` seeded source points),
     the total time, and what every result says of the pair;
-    ``outcome`` holds the rest (estimator, refinement, the flag and its reason)."""
+    ``outcome`` holds the rest (estimator, refinement, the flag and its reason).
+
+    ``icp_evaluation``: the ICP that returned ``transformation``, run at ``distance`` on the same
+    seeded source subset (``max_source_points == evaluation_points``, one seed): its final
+    fitness and RMSE are this evaluation already (the same query, in ICP's frame), so the
+    target's k-d tree is not built twice."""
+    refinement = config.refinement
     # One thread: a bounded query, which OpenMP's start-up and spin-waits on a small machine slow.
     with timed(timings, "evaluation"), one_thread_per_caller():
-        scored = seeded_subset(
-            len(pair.source_points), config.refinement.evaluation_points, np.random.default_rng(config.refinement.seed)
-        )
-        evaluation = evaluate_registration(pair.source_points[scored], pair.target_points, distance, transformation)
+        scored = seeded_subset(len(pair.source_points), refinement.evaluation_points, np.random.default_rng(refinement.seed))
+        if icp_evaluation is not None:
+            fitness, inlier_rmse = icp_evaluation.fitness, icp_evaluation.inlier_rmse
+        else:
+            evaluation = evaluate_registration(pair.source_points[scored], pair.target_points, distance, transformation)
+            fitness, inlier_rmse = evaluation.fitness, evaluation.inlier_rmse
     timings["total"] = sum(timings.values())
     return RegistrationResult(
         transformation=transformation,
         correspondences=pair.correspondences,
         confidences=pair.matches.confidence,
-        fitness=evaluation.fitness,
-        inlier_rmse=evaluation.inlier_rmse,
+        fitness=fitness,
+        inlier_rmse=inlier_rmse,
         max_correspondence_distance=distance,
         fitness_points=len(scored),
         subsampled=pair.subsampled,

@@ -210,8 +210,9 @@ def icp(
 
     Returns:
         :class:`IcpResult`; its fitness and inlier RMSE are those of the returned pose at
-        ``max_distance`` (whatever distance the last stage used), over the source points ICP
-        iterated on; ``iterations`` counts all stages.
+        ``max_distance`` (whatever distance the last stage used), over the seeded subset of
+        ``max_source_points`` (all the source points ICP's last stage iterated on);
+        ``iterations`` counts all stages.
 
     Raises:
         ValueError: unknown method, ``max_distance`` not > 0, ``initial`` not a rigid (4, 4)

@@ -311,6 +311,33 @@ def test_fitness_is_computed_on_a_bounded_seeded_subset_of_the_source(registrar,
     assert bounded.to_dict()["fitness_points"] == 100
 
 
+def test_after_icp_the_fitness_is_icps_own_final_evaluation_on_the_same_subset(registrar, demo_pair):
+    """With ICP, the result's fitness and RMSE come from ICP's last query (its source subset is
+    the evaluation's when max_source_points == evaluation_points): the figures
+    evaluate_registration gives on that subset, for 1,024 points and for a subset of 300; with
+    the two sizes apart, evaluate_registration's own."""
+    from logdesc_rt.pose import evaluate_registration
+    from logdesc_rt.sampling import seeded_subset
+
+    for count in (20_000, 300):
+        config = {"refinement": {"max_source_points": count, "evaluation_points": count}}
+        result = registrar.register(demo_pair.source, demo_pair.target, refine="point_to_plane", config=config)
+        subset = seeded_subset(len(demo_pair.source), count, np.random.default_rng(result.config.refinement.seed))
+        expected = evaluate_registration(
+            demo_pair.source[subset], demo_pair.target, result.max_correspondence_distance, result.transformation
+        )
+        assert result.fitness_points == len(subset)
+        assert result.fitness == pytest.approx(expected.fitness, abs=1.5 / len(subset))
+        assert result.inlier_rmse == pytest.approx(expected.inlier_rmse, rel=1e-6)
+    apart = {"refinement": {"max_source_points": 300, "evaluation_points": 200}}
+    result = registrar.register(demo_pair.source, demo_pair.target, refine="point_to_plane", config=apart)
+    subset = seeded_subset(len(demo_pair.source), 200, np.random.default_rng(result.config.refinement.seed))
+    expected = evaluate_registration(
+        demo_pair.source[subset], demo_pair.target, result.max_correspondence_distance, result.transformation
+    )
+    assert (result.fitness, result.inlier_rmse) == (expected.fitness, expected.inlier_rmse)
+
+
 def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_with_the_dynamic_ones(registrar, demo_pair):
     """Clouds cut to the working size reach the networks through sessions with fixed point axes
     (OnnxNetwork.fixed_points); their outputs are the dynamic graphs' within float32 rounding,
