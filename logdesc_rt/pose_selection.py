@@ -293,12 +293,13 @@ def _judged_result(
     refinement = config.refinement
     # One thread: a bounded query, which OpenMP's start-up and spin-waits on a small machine slow.
     with timed(timings, "evaluation"), one_thread_per_caller():
-        scored = seeded_subset(len(pair.source_points), refinement.evaluation_points, np.random.default_rng(refinement.seed))
         if icp_evaluation is not None:
             fitness, inlier_rmse = icp_evaluation.fitness, icp_evaluation.inlier_rmse
+            fitness_points = min(len(pair.source_points), refinement.evaluation_points or len(pair.source_points))
         else:
+            scored = seeded_subset(len(pair.source_points), refinement.evaluation_points, np.random.default_rng(refinement.seed))
             evaluation = evaluate_registration(pair.source_points[scored], pair.target_points, distance, transformation)
-            fitness, inlier_rmse = evaluation.fitness, evaluation.inlier_rmse
+            fitness, inlier_rmse, fitness_points = evaluation.fitness, evaluation.inlier_rmse, len(scored)
     timings["total"] = sum(timings.values())
     return RegistrationResult(
         transformation=transformation,
@@ -307,7 +308,7 @@ def _judged_result(
         fitness=fitness,
         inlier_rmse=inlier_rmse,
         max_correspondence_distance=distance,
-        fitness_points=len(scored),
+        fitness_points=fitness_points,
         subsampled=pair.subsampled,
         source_points_used=len(pair.source_index),
         target_points_used=len(pair.target_index),
