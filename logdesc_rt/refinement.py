@@ -107,7 +107,7 @@ def estimate_normals(
         not care).
     """
     tree = KDTree(points) if tree is None else tree
-    return _TargetNormals(points, tree, neighbours).at(np.arange(len(points)) if index is None else np.asarray(index))
+    return LazyNormals(points, tree, neighbours).at(np.arange(len(points)) if index is None else np.asarray(index))
 
 
 def refine_pose(source, target, initial: np.ndarray, max_distance: float, config) -> IcpResult:
@@ -130,12 +130,19 @@ def refine_pose(source, target, initial: np.ndarray, max_distance: float, config
     )
 
 
-class _TargetNormals:
+class LazyNormals:
     """:func:`estimate_normals` of a cloud, computed only for the points asked for, once each.
 
     ICP on a large target meets a fraction of its points; the PCA of all of them cost most of
     a 200k-point refinement. Each normal is computed exactly as ``estimate_normals`` computes it
     (same tree, same neighbours, same covariance): asking for all points gives its result.
+    Normals do not change with a translation or a uniform scale of the cloud, so one instance
+    serves :func:`icp` in its working frame as well.
+
+    Args:
+        points: (N, 3) float64 cloud.
+        tree: a k-d tree of ``points``.
+        neighbours: k, the point itself included (capped at N).
     """
 
     def __init__(self, points: np.ndarray, tree: KDTree, neighbours: int = NORMAL_NEIGHBOURS):
@@ -175,7 +182,8 @@ def icp(
     max_iterations: int = 30,
     tolerance: float = 1e-7,
     adaptive: bool = False,
-    target_normals: np.ndarray | None = None,
+    target_normals: "np.ndarray | LazyNormals | None" = None,
+    target_spacing: float | None = None,
     max_source_points: int | None = None,
     coarse_source_points: int | None = None,
     seed: int = 0,
@@ -194,8 +202,13 @@ def icp(
         adaptive: after convergence, halve the distance and run again while the inliers hold
             (module docstring); at most 4 stages.
         target_normals: (M, 3) unit normals of ``target`` for point-to-plane, if the caller
-            has them (verification refines several poses against one target); else estimated
-            here as :func:`estimate_normals` would, for the target points ICP meets only.
+            has them (verification refines several poses against one target), or a
+            :class:`LazyNormals` of ``target`` (computed where ICP meets it, kept for the
+            caller); else estimated here as :func:`estimate_normals` would, for the target
+            points ICP meets only.
+        target_spacing: the median nearest-neighbour distance among all ``target`` points,
+            the clouds' unit, when the caller has it (the adaptive stages' floor; with
+            ``max_source_points`` None it is what ICP would compute).
         max_source_points: iterate on a seeded uniform subset of at most this many source
             points (None: all). Its correspondences pull the pose as the whole cloud's do, at a
             fraction of the cost of a large cloud; the target is used whole. The adaptive
@@ -250,7 +263,11 @@ def icp(
     normals = None
     if method == "point_to_plane":
         if target_normals is None:
-            normals = _TargetNormals(target_working, tree)
+            normals = LazyNormals(target_working, tree)
+        elif isinstance(target_normals, LazyNormals):
+            if len(target_normals.points) != len(target):
+                raise ValueError(f"target_normals: normals of {len(target_normals.points)} points, expected {len(target)}")
+            normals = target_normals
         else:
             given = np.asarray(target_normals, dtype=np.float64)
             if given.shape != target.shape:
@@ -259,7 +276,9 @@ def icp(
 
     pose = to_working @ initial @ from_working
     floor = 0.0
-    if adaptive:
+    if adaptive and target_spacing is not None:
+        floor = SPACING_MULTIPLE * float(target_spacing) / unit
+    elif adaptive:
         spaced = target_working[seeded_subset(len(target_working), max_source_points, generator)]
         spacing, _ = tree.query(spaced, k=2)
         floor = SPACING_MULTIPLE * float(np.median(spacing[:, 1]))
@@ -306,7 +325,7 @@ def icp(
 
 
 class _GivenNormals:
-    """Normals the caller computed, read like :class:`_TargetNormals`."""
+    """Normals the caller computed, read like :class:`LazyNormals`."""
 
     def __init__(self, normals: np.ndarray):
         self.normals = np.ascontiguousarray(normals, dtype=np.float64)
@@ -322,7 +341,7 @@ def _icp_stage(
     source: np.ndarray,
     target: np.ndarray,
     tree: KDTree,
-    normals: "_TargetNormals | _GivenNormals | None",
+    normals: "LazyNormals | _GivenNormals | None",
     pose: np.ndarray,
     max_distance: float,
     max_iterations: int,

@@ -86,7 +86,7 @@ from pykdtree.kdtree import KDTree
 
 from .config import EXIT_FEATURES, VERIFICATION_FEATURES, VerificationConfig
 from .metrics import rotation_error_deg
-from .refinement import estimate_normals, icp, point_to_point_icp_batch
+from .refinement import LazyNormals, estimate_normals, icp, point_to_point_icp_batch
 from .sampling import seeded_subset
 from .threads import per_cloud
 
@@ -163,10 +163,24 @@ def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _tree_and_normals(points: np.ndarray) -> tuple[KDTree, np.ndarray]:
-    """A k-d tree of (N, 3) ``points`` and their (N, 3) normals (:func:`estimate_normals`)."""
+def _apply(function: Callable, points: np.ndarray):
+    """``function(points)``: lets :func:`per_cloud` run a different set-up for each cloud."""
+    return function(points)
+
+
+def _source_normals(points: np.ndarray) -> np.ndarray:
+    """(N, 3) normals of every scored source point (:func:`estimate_normals`): the features
+    read those of nearly all of them."""
+    return estimate_normals(points, tree=KDTree(points))
+
+
+def _target_tree_spacing_normals(points: np.ndarray) -> tuple[KDTree, float, LazyNormals]:
+    """A k-d tree of the scored target (M, 3), its median nearest-neighbour distance, and its
+    normals computed where a pose meets it (:class:`LazyNormals`): the short ICP and the
+    features read the normals of the target points paired with the source subset only."""
     tree = KDTree(points)
-    return tree, estimate_normals(points, tree=tree)
+    spacing, _ = tree.query(points, k=2)
+    return tree, float(np.median(spacing[:, 1])), LazyNormals(points, tree)
 
 
 def logistic_confidence(features: np.ndarray, config: VerificationConfig) -> float:
@@ -216,13 +230,13 @@ class PoseVerifier:
         self.target_matched = target_matched
         self.confidences = confidences
         self.distance = config.distance_fraction * scale
-        # One tree of the scored target serves the spacing, every pose's query and its normals.
-        # The two subsets' normals (most of this set-up's time) are computed side by side.
-        (self.target_tree, self.target_normals), (_, self.source_normals) = per_cloud(
-            _tree_and_normals, (self.target,), (self.source,)
+        # One tree of the scored target serves the spacing, every pose's query and its normals;
+        # the target's set-up runs beside the source's normals (most of this set-up's time).
+        target_job, self.source_normals = per_cloud(
+            _apply, (_target_tree_spacing_normals, self.target), (_source_normals, self.source)
         )
-        spacing, _ = self.target_tree.query(self.target, k=2)
-        self.sharp_distance = config.sharp_factor * float(np.median(spacing[:, 1]))
+        self.target_tree, self.target_spacing, self.target_normals = target_job
+        self.sharp_distance = config.sharp_factor * self.target_spacing
         self.match_tolerance = config.match_tolerance * scale
         self.centre = self.source.mean(axis=0)
         # Half-turns about the source's principal axes, through its centroid: (3, 4, 4).
@@ -276,7 +290,7 @@ class PoseVerifier:
         if inlier.any():
             moved_normals = self.source_normals[inlier] @ rotation.T
             agreement_of_normals = float(
-                np.mean(np.abs(np.sum(moved_normals * self.target_normals[index[inlier]], axis=1)))
+                np.mean(np.abs(np.sum(moved_normals * self.target_normals.at(index[inlier]), axis=1)))
             )
         else:
             agreement_of_normals = 0.0
@@ -336,6 +350,7 @@ class PoseVerifier:
             max_iterations=self.config.icp_iterations,
             adaptive=True,
             target_normals=self.target_normals,
+            target_spacing=self.target_spacing,
         ).transformation
 
     def verify(

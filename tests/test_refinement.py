@@ -87,14 +87,41 @@ def test_normals_computed_on_demand_are_estimate_normals():
     estimate_normals gives that point (same tree, neighbours and covariance)."""
     from pykdtree.kdtree import KDTree
 
-    from logdesc_rt.refinement import _TargetNormals, estimate_normals
+    from logdesc_rt.refinement import LazyNormals, estimate_normals
 
     points = np.random.default_rng(0).normal(size=(3000, 3)) * [1.0, 0.6, 0.1]
     everywhere = estimate_normals(points)
-    lazy = _TargetNormals(points, KDTree(points))
+    lazy = LazyNormals(points, KDTree(points))
     picked = np.random.default_rng(1).integers(0, len(points), size=700)
     np.testing.assert_array_equal(lazy.at(picked), everywhere[picked])
     np.testing.assert_array_equal(lazy.at(np.arange(len(points))), everywhere)
+
+
+def test_icp_with_the_callers_lazy_normals_and_spacing_refines_as_with_its_own():
+    """A caller's LazyNormals of the target (user frame) and its median spacing give ICP the
+    pose it finds computing both itself, and the normals ICP met stay computed for the caller;
+    normals of another cloud are refused."""
+    from pykdtree.kdtree import KDTree
+
+    from logdesc_rt.refinement import LazyNormals, estimate_normals
+
+    generator = np.random.default_rng(2)
+    u, v = generator.uniform(-1.0, 1.0, size=(2, 4000))
+    target = np.column_stack([u, v, 0.3 * np.sin(2.0 * u) * np.cos(3.0 * v)]) + [100.0, -50.0, 20.0]
+    source = target[:1500] + generator.normal(scale=0.003, size=(1500, 3))
+    start = np.eye(4)
+    start[:3, :3] = Rotation.from_euler("xyz", [1.5, -2.0, 1.0], degrees=True).as_matrix()
+    start[:3, 3] = start[:3, :3] @ -target.mean(axis=0) + target.mean(axis=0) + [0.01, 0.02, -0.01]
+    tree = KDTree(target)
+    spacing = float(np.median(tree.query(target, k=2)[0][:, 1]))
+    lazy = LazyNormals(target, tree)
+    own = icp(source, target, start, 0.1, adaptive=True, target_normals=estimate_normals(target))
+    given = icp(source, target, start, 0.1, adaptive=True, target_normals=lazy, target_spacing=spacing)
+    np.testing.assert_allclose(given.transformation, own.transformation, rtol=0, atol=1e-12)
+    assert given.iterations == own.iterations
+    assert 0 < lazy.known.sum() < len(target)  # computed where ICP met the target only
+    with pytest.raises(ValueError, match="target_normals"):
+        icp(source, target[:-1], start, 0.1, target_normals=lazy)
 
 
 def test_icp_on_a_source_subset_lands_where_the_whole_cloud_does(scan_pair, shared_data):
