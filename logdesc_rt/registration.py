@@ -238,11 +238,9 @@ class Registrar:
         timings = dict(prepared.timings)
         network_source, network_target = prepared.source_network, prepared.target_network
         with timed(timings, "descriptors"):
-            source_descriptors = self.network.describe(
-                prepared.source_geometry.edges, network_source, prepared.source_geometry.normals
-            )
-            target_descriptors = self.network.describe(
-                prepared.target_geometry.edges, network_target, prepared.target_geometry.normals
+            source_descriptors, target_descriptors = self.network.describe_pair(
+                {"edges": prepared.source_geometry.edges, "points": network_source, "normals": prepared.source_geometry.normals},
+                {"edges": prepared.target_geometry.edges, "points": network_target, "normals": prepared.target_geometry.normals},
             )
         with timed(timings, "matcher"):
             scores = self.network.match_scores(

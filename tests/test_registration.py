@@ -10,6 +10,7 @@ import pytest
 import logdesc_rt
 from logdesc_rt import Registrar
 from logdesc_rt.demo import make_demo_pair
+from logdesc_rt.denormals import X86_64
 from logdesc_rt.errors import ModelFileError, NonFinitePointsError, PointCloudFileError, TooFewPointsError
 from logdesc_rt.metrics import rotation_error_deg
 from logdesc_rt.network import bundled_model_dir
@@ -253,16 +254,20 @@ _DENORMAL_PROBE = r"""
 import numpy as np
 from logdesc_rt import Registrar
 from logdesc_rt.demo import make_demo_pair
-from logdesc_rt.network import network_thread
+from logdesc_rt.network import network_thread, second_network_thread
 
 def flushes(x):  # True when this thread treats denormal floats as zero (FTZ / DAZ)
     return bool((np.array([1e-40], dtype=np.float32) * np.float32(x))[0] == 0.0)
 
 pair = make_demo_pair()
 source, target = pair.source, pair.target
-first = Registrar().register(source, target).transformation
-second = Registrar().register(source, target).transformation  # a second model, same thread
-print(flushes(1.0), network_thread().submit(flushes, 1.0).result(), float(np.abs(first - second).max()))
+registrar = Registrar(threads=2)
+first = registrar.register(source, target).transformation
+second = Registrar(threads=2).register(source, target).transformation  # a second model, same threads
+side_by_side = registrar.network._side_by_side
+print(flushes(1.0), network_thread().submit(flushes, 1.0).result(),
+      second_network_thread().submit(flushes, 1.0).result() if side_by_side else "not-used",
+      float(np.abs(first - second).max()))
 """
 
 
@@ -276,9 +281,11 @@ def test_the_networks_flush_denormals_on_their_own_thread_only():
     completed = subprocess.run(
         [sys.executable, "-c", _DENORMAL_PROBE], capture_output=True, text=True, timeout=300, check=True
     )
-    caller_flushes, network_flushes, difference = completed.stdout.split()
+    caller_flushes, network_flushes, second_flushes, difference = completed.stdout.split()
     assert caller_flushes == "False", "the caller's thread lost IEEE denormals"
     assert network_flushes == "True", "the network thread does not flush denormals (the slow path)"
+    # The second network thread runs one cloud's descriptor beside the first (x86-64).
+    assert second_flushes == ("True" if X86_64 else "not-used")
     assert float(difference) == 0.0
 
 
@@ -366,3 +373,31 @@ def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_wit
     smaller = OnnxNetwork(fixed_points=working)
     smaller.describe(source.edges[:200], prepared.source_network[:200], source.normals[:200])
     assert not smaller._fixed_sessions
+
+
+def test_a_pairs_descriptors_side_by_side_are_each_clouds_own(registrar, demo_pair):
+    """describe_pair runs two working-size clouds at once on two threads with half the
+    intra-op threads each (x86-64, two threads or more); its descriptors are describe's of each
+    cloud within float32 rounding, and clouds of another size go one after the other."""
+    from logdesc_rt.network import OnnxNetwork
+
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    clouds = [
+        {"edges": geometry.edges, "points": points, "normals": geometry.normals}
+        for geometry, points in ((prepared.source_geometry, prepared.source_network),
+                                 (prepared.target_geometry, prepared.target_network))
+    ]
+    network = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
+    paired = network.describe_pair(*clouds)
+    assert network._side_by_side == X86_64
+    alone = [OnnxNetwork(threads=2).describe(**cloud) for cloud in clouds]
+    for together, single in zip(paired, alone, strict=True):
+        assert together.shape == single.shape
+        assert np.abs(together - single).max() <= 2e-5
+    one_thread = OnnxNetwork(threads=1, fixed_points=registrar.max_points)
+    one_thread.describe_pair(*clouds)
+    assert one_thread._side_by_side is False  # one thread: nothing to share out
+    cut = [{name: array[:200] for name, array in cloud.items()} for cloud in clouds]
+    unfixed = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
+    unfixed.describe_pair(*cut)
+    assert unfixed._side_by_side is None and unfixed._half_descriptor is None
