@@ -3,8 +3,9 @@
     python export/to_onnx.py CHECKPOINT.pt [--out DIR] [--opset 17] [--provenance FILE.json]
 
 Writes DIR/descriptor.onnx (edges, points -> descriptors), DIR/matcher.onnx (descriptors and
-normals of both clouds -> scores) and DIR/manifest.json (configs, dustbin score, working size,
-SHA-256 checksums, provenance). The configs and the dustbin score are also written into each
+normals of both clouds -> scores), for the invariant network DIR/matcher_same_size.onnx (the
+same function for two clouds of one size, both in one batch) and DIR/manifest.json (configs,
+dustbin score, working size, SHA-256 checksums, provenance). The configs and the dustbin score are also written into each
 ONNX file's metadata. Both graphs have dynamic point counts. Then: ``onnx.checker`` on each
 file, and onnxruntime against torch on random inputs and on a real ModelNet10 shape (if the
 shared data is present), printing the largest absolute difference against the tolerance; the
@@ -35,6 +36,7 @@ from logdesc_rt.network import (  # noqa: E402
     MANIFEST_NAME,
     MATCHER_FILE,
     POINT_AXES,
+    SAME_SIZE_MATCHER_FILE,
     ModelManifest,
     bundled_model_dir,
     sha256_of,
@@ -81,17 +83,24 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
     }
     source_axis, target_axis = POINT_AXES  # the runtime fixes them by name (OnnxNetwork.fixed_points)
     point_axis = {name: (target_axis if name.endswith("_target") else source_axis) for name in examples}
-    graphs = (
-        (DescribeModule(model), model.describe_inputs, "descriptors", {1: source_axis}, DESCRIPTOR_FILE),
-        (MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: target_axis}, MATCHER_FILE),
-    )
+    graphs = [
+        (DescribeModule(model), model.describe_inputs, "descriptors", {1: source_axis}, DESCRIPTOR_FILE, examples, point_axis),
+        (MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: target_axis}, MATCHER_FILE,
+         examples, point_axis),
+    ]
+    if config.architecture == "invariant":
+        # Traced with two clouds of one size, the invariant transformer stacks them in one batch
+        # (InvariantTransformer.forward); every input's point axis is the source's.
+        same_size = {name: examples[name.replace("_target", "_source")].clone() for name in model.match_inputs}
+        graphs.append((MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: source_axis},
+                       SAME_SIZE_MATCHER_FILE, same_size, dict.fromkeys(point_axis, source_axis)))
     with torch.no_grad():
-        for module, input_names, output_name, output_axes, file_name in graphs:
-            dynamic_axes = {name: {1: point_axis[name]} for name in input_names}
+        for module, input_names, output_name, output_axes, file_name, inputs, axes in graphs:
+            dynamic_axes = {name: {1: axes[name]} for name in input_names}
             dynamic_axes[output_name] = output_axes
             torch.onnx.export(
                 module,
-                tuple(examples[name] for name in input_names),
+                tuple(inputs[name] for name in input_names),
                 str(out_dir / file_name),
                 input_names=list(input_names),
                 output_names=[output_name],
@@ -111,7 +120,8 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
         "logdesc_rt.dustbin_score": repr(float(model.dustbin_score.detach())),
         "logdesc_rt.points_per_cloud": str(info.points_per_cloud),
     }
-    for name in (DESCRIPTOR_FILE, MATCHER_FILE):
+    files = [graph[4] for graph in graphs]
+    for name in files:
         graph = onnx.load(str(out_dir / name))
         del graph.metadata_props[:]
         for key, value in metadata.items():
@@ -127,7 +137,7 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
         dustbin_score=float(model.dustbin_score.detach()),
         points_per_cloud=info.points_per_cloud,
         descriptor_dim=config.descriptor_dim,
-        checksums={name: sha256_of(out_dir / name) for name in (DESCRIPTOR_FILE, MATCHER_FILE)},
+        checksums={name: sha256_of(out_dir / name) for name in files},
         model_config=config.to_dict(),
         provenance={**info.provenance, **provenance},
     )
@@ -139,9 +149,13 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
     """Run torch and onnxruntime on random and real inputs; print and check the differences."""
     describe = onnxruntime.InferenceSession(str(out_dir / DESCRIPTOR_FILE), providers=["CPUExecutionProvider"])
     match = onnxruntime.InferenceSession(str(out_dir / MATCHER_FILE), providers=["CPUExecutionProvider"])
+    same_size_file = out_dir / SAME_SIZE_MATCHER_FILE
+    match_same_size = (
+        onnxruntime.InferenceSession(str(same_size_file), providers=["CPUExecutionProvider"]) if same_size_file.is_file() else None
+    )
     rng = np.random.default_rng(0)
     cases = []
-    for n, m in ((300, 200), (1024, 768)):  # sizes unlike the export's 64/48: dynamic axes
+    for n, m in ((300, 200), (1024, 768), (300, 300)):  # sizes unlike the export's 64/48: dynamic axes
         source = rng.normal(size=(n, 3)) * [1.0, 0.7, 0.4]
         target = rng.normal(size=(m, 3)) * [0.8, 0.8, 0.5]
         cases.append((f"random {n}x{m}", source, target))
@@ -183,6 +197,10 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
         )
         score_scale = float(np.abs(t_scores.numpy()).max())
         score_error = float(np.abs(o_scores - t_scores.numpy()).max())
+        if match_same_size is not None and len(source) == len(target):
+            o_same = match_same_size.run(None, {i.name: match_feeds[i.name] for i in match_same_size.get_inputs()})[0]
+            score_error = max(score_error, float(np.abs(o_same - t_scores.numpy()).max()))
+            label += f" (and {SAME_SIZE_MATCHER_FILE})"
         score_tolerance = SCORE_RELATIVE_TOLERANCE * max(score_scale, 1.0)
         ok = descriptor_error <= DESCRIPTOR_TOLERANCE and score_error <= score_tolerance
         passed &= ok

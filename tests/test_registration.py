@@ -349,7 +349,7 @@ def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_wit
     """Clouds cut to the working size reach the networks through sessions with fixed point axes
     (OnnxNetwork.fixed_points); their outputs are the dynamic graphs' within float32 rounding,
     and any other size runs the dynamic sessions."""
-    from logdesc_rt.network import DESCRIPTOR_FILE, MATCHER_FILE, OnnxNetwork
+    from logdesc_rt.network import DESCRIPTOR_FILE, MATCHER_FILE, SAME_SIZE_MATCHER_FILE, OnnxNetwork
 
     prepared = registrar.prepare(demo_pair.source, demo_pair.target)
     working = registrar.max_points
@@ -368,11 +368,37 @@ def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_wit
     for fixed_output, dynamic_output in zip(outputs(fixed), outputs(dynamic), strict=True):
         # float32 rounding through the layers: within 2e-5 of the output's largest magnitude
         assert np.abs(fixed_output - dynamic_output).max() <= 2e-5 * np.abs(dynamic_output).max()
-    assert set(fixed._fixed_sessions) == {DESCRIPTOR_FILE, MATCHER_FILE} and not dynamic._fixed_sessions
+    # Two clouds of the working size go through the same-size matcher graph (both in one batch).
+    assert set(fixed._fixed_sessions) == {DESCRIPTOR_FILE, SAME_SIZE_MATCHER_FILE} and not dynamic._fixed_sessions
+    assert set(dynamic._sessions) == {DESCRIPTOR_FILE, MATCHER_FILE, SAME_SIZE_MATCHER_FILE}
 
     smaller = OnnxNetwork(fixed_points=working)
     smaller.describe(source.edges[:200], prepared.source_network[:200], source.normals[:200])
     assert not smaller._fixed_sessions
+
+
+def test_the_same_size_matcher_graph_scores_as_the_general_one(registrar, demo_pair):
+    """Two clouds of one size go through matcher_same_size.onnx (both in one batch), whose
+    scores are matcher.onnx's within float32 rounding; clouds of two sizes through matcher.onnx.
+    A model without the graph (its manifest does not list it) uses matcher.onnx for both."""
+    from logdesc_rt.network import MATCHER_FILE, SAME_SIZE_MATCHER_FILE, OnnxNetwork
+
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    source, target = prepared.source_geometry, prepared.target_geometry
+    describer = OnnxNetwork()
+    inputs = [describer.describe(geometry.edges, points, geometry.normals) for geometry, points in
+              ((source, prepared.source_network), (target, prepared.target_network))]
+    arguments = (*inputs, source.normals, target.normals, prepared.source_network, prepared.target_network)
+    with_graph, without_graph = OnnxNetwork(), OnnxNetwork()
+    del without_graph.manifest.checksums[SAME_SIZE_MATCHER_FILE]
+    same_size, general = with_graph.match_scores(*arguments), without_graph.match_scores(*arguments)
+    assert SAME_SIZE_MATCHER_FILE in with_graph._sessions and SAME_SIZE_MATCHER_FILE not in without_graph._sessions
+    assert np.abs(same_size - general).max() <= 2e-5 * np.abs(general).max()
+    cut = (inputs[0], inputs[1][:300], source.normals, target.normals[:300], prepared.source_network,
+           prepared.target_network[:300])
+    fresh = OnnxNetwork()
+    assert fresh.match_scores(*cut).shape == (len(inputs[0]), 300)
+    assert set(fresh._sessions) == {"descriptor.onnx", MATCHER_FILE}
 
 
 def test_a_pairs_descriptors_side_by_side_are_each_clouds_own(registrar, demo_pair):
