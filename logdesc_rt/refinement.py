@@ -24,7 +24,6 @@ the clouds 5 m away look like a huge translation and the step diverged.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +33,13 @@ from scipy.spatial.transform import Rotation
 from .config import REFINEMENT_METHODS
 from .pose import rigid_transform_svd
 from .pose.evaluation import check_rigid_transformation
-from .pose.kernels import correspondence_plane_equations, neighbourhood_normals, plane_normal_equations
+from .pose.kernels import (
+    correspondence_plane_equations,
+    motion_size,
+    neighbourhood_normals,
+    plane_normal_equations,
+    plane_step,
+)
 from .pose.svd import solve_rigid_batch
 from .sampling import seeded_subset
 from .validation import as_points
@@ -51,6 +56,7 @@ MAX_STAGES = 4
 # ICP stops when its pose comes back (within the tolerance) to where it was up to this many
 # updates before: a cycle, which further iterations only go round.
 MAX_CYCLE = 4
+_IDENTITY = np.eye(4)
 
 
 @dataclass(frozen=True)
@@ -150,6 +156,7 @@ class LazyNormals:
         self.neighbours = int(min(max(neighbours, 3), len(points)))
         self.normals = np.zeros((len(points), 3))
         self.known = np.zeros(len(points), dtype=bool)
+        self.complete = False  # every normal known: nothing left to look up
 
     def at(self, index: np.ndarray) -> np.ndarray:
         """(K, 3) normals of the points ``index`` (K,) int."""
@@ -163,6 +170,8 @@ class LazyNormals:
         return self.normals
 
     def _compute(self, index: np.ndarray) -> None:
+        if self.complete:
+            return
         missing = np.unique(index[~self.known[index]])
         if len(missing):
             k = self.neighbours
@@ -171,6 +180,7 @@ class LazyNormals:
                 np.ascontiguousarray(self.points, dtype=np.float64), neighbour_index.reshape(len(missing), k).astype(np.int64)
             )
             self.known[missing] = True
+            self.complete = bool(self.known.all())
 
 
 def icp(
@@ -182,7 +192,7 @@ def icp(
     max_iterations: int = 30,
     tolerance: float = 1e-7,
     adaptive: bool = False,
-    target_normals: "np.ndarray | LazyNormals | None" = None,
+    target_normals: np.ndarray | LazyNormals | None = None,
     target_spacing: float | None = None,
     max_source_points: int | None = None,
     coarse_source_points: int | None = None,
@@ -341,7 +351,7 @@ def _icp_stage(
     source: np.ndarray,
     target: np.ndarray,
     tree: KDTree,
-    normals: "LazyNormals | _GivenNormals | None",
+    normals: LazyNormals | _GivenNormals | None,
     pose: np.ndarray,
     max_distance: float,
     max_iterations: int,
@@ -367,51 +377,16 @@ def _icp_stage(
                 return pose, iteration - 1, "too_few_correspondences"
             step = _plane_step(matrix, rhs, pivot)
         pose = step @ pose
-        if _step_size(step, max_distance) < tolerance:
+        if motion_size(step, _IDENTITY, max_distance) < tolerance:
             return pose, iteration, "converged"
         # A cycle: the correspondences come back to a set they had, and so does the pose; further
         # iterations only go round. On the real bun000 -> bun045 pair, stages on source subsets
         # alternated between two (or three) poses ~5e-6 apart for 25 of their 30 iterations,
         # the pose returning to within 1e-15 of itself.
-        if any(_step_size(_relative(pose, earlier), max_distance) < tolerance for earlier in recent[:-1]):
+        if any(motion_size(pose, earlier, max_distance) < tolerance for earlier in recent[:-1]):
             return pose, iteration, "cycle"  # back to where it was 2 ... MAX_CYCLE updates ago
         recent = [*recent, pose][-MAX_CYCLE:]
     return pose, max_iterations, "max_iterations"
-
-
-def _step_size(step: np.ndarray, max_distance: float) -> float:
-    """Rotation angle (radians) plus translation relative to the stage's distance, so that a
-    tighter stage converges as tightly."""
-    rotation = step[:3, :3]
-    # The angle from the skew part (2 sin(angle) times the axis) and the trace (its cosine's
-    # sign): exact at every angle, and a few microseconds instead of a scipy Rotation's ~50.
-    sine = 0.5 * math.sqrt(
-        (rotation[2, 1] - rotation[1, 2]) ** 2 + (rotation[0, 2] - rotation[2, 0]) ** 2 + (rotation[1, 0] - rotation[0, 1]) ** 2
-    )
-    angle = math.asin(min(sine, 1.0))
-    if rotation[0, 0] + rotation[1, 1] + rotation[2, 2] < 1.0:  # cos(angle) < 0: past 90 degrees
-        angle = math.pi - angle
-    return angle + math.sqrt(float(step[:3, 3] @ step[:3, 3])) / max_distance
-
-
-def _rotation_from_vector(vector: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation by |vector| radians about its direction (Rodrigues' formula; what scipy's
-    Rotation.from_rotvec gives, without its per-call overhead in ICP's loop)."""
-    angle = math.sqrt(float(vector @ vector))
-    if angle < 1e-12:  # second order: exact to float precision here
-        cross = np.array([[0.0, -vector[2], vector[1]], [vector[2], 0.0, -vector[0]], [-vector[1], vector[0], 0.0]])
-        return np.eye(3) + cross + 0.5 * cross @ cross
-    x, y, z = vector / angle
-    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
-
-
-def _relative(pose: np.ndarray, earlier: np.ndarray) -> np.ndarray:
-    """(4, 4) pose @ earlier^-1 for rigid (4, 4) transforms (the motion from one to the other)."""
-    relative = np.eye(4)
-    relative[:3, :3] = pose[:3, :3] @ earlier[:3, :3].T
-    relative[:3, 3] = pose[:3, 3] - relative[:3, :3] @ earlier[:3, 3]
-    return relative
 
 
 def plane_fit_step(
@@ -450,16 +425,10 @@ def plane_fit_step(
 
 
 def _plane_step(matrix: np.ndarray, rhs: np.ndarray, pivot: np.ndarray) -> np.ndarray:
-    """(4, 4) update from the (6, 6) / (6,) linearised plane-fit equations about ``pivot`` (3,):
-    a rotation about the pivot by the first three unknowns, then their translation."""
-    # lstsq on the 6 x 6 normal equations still gives the minimum-norm step where the surface
-    # leaves a motion free (a plane, a cylinder).
-    solution, *_ = np.linalg.lstsq(matrix, rhs, rcond=None)
-    rotation = _rotation_from_vector(solution[:3])
-    step = np.eye(4)
-    step[:3, :3] = rotation
-    step[:3, 3] = pivot + solution[3:] - rotation @ pivot
-    return step
+    """(4, 4) update from the (6, 6) / (6,) linearised plane-fit equations about ``pivot`` (3,)
+    (:func:`~logdesc_rt.pose.kernels.plane_step`: the minimum-norm solution, so that a motion
+    the surface leaves free, a plane's or a cylinder's, gets no step)."""
+    return plane_step(matrix, rhs, pivot)
 
 
 def _normal_equations(

@@ -194,3 +194,62 @@ def correspondence_plane_equations(
         )
     _mirror_upper_triangle(matrix)
     return matrix, rhs, pivot, count
+
+
+# numpy.linalg.lstsq's default cut-off (rcond=None): singular values below eps x max(6, 6) of
+# the largest are zero, so a motion the surface leaves free (a plane's slide) gets no step.
+_LSTSQ_RCOND = 6.0 * np.finfo(np.float64).eps
+
+
+@jit
+def plane_step(matrix: np.ndarray, rhs: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid update from the (6, 6) / (6,) linearised plane-fit equations about ``pivot``
+    (3,): a rotation about the pivot by the first three unknowns (axis-angle, Rodrigues'
+    formula), then their translation. The minimum-norm least-squares solution (numpy.linalg's
+    ``lstsq`` cut-off), so that a motion the surface leaves free (a plane, a cylinder) stays 0."""
+    solution = np.linalg.lstsq(matrix, rhs, _LSTSQ_RCOND)[0]
+    vx, vy, vz = solution[0], solution[1], solution[2]
+    angle = np.sqrt(vx * vx + vy * vy + vz * vz)
+    cross = np.zeros((3, 3))
+    if angle < 1e-12:  # second order: exact to float precision here
+        sine, one_minus_cosine = 1.0, 0.5
+        x, y, z = vx, vy, vz
+    else:
+        sine, one_minus_cosine = np.sin(angle), 1.0 - np.cos(angle)
+        x, y, z = vx / angle, vy / angle, vz / angle
+    cross[0, 1], cross[0, 2], cross[1, 0], cross[1, 2], cross[2, 0], cross[2, 1] = -z, y, z, -x, -y, x
+    rotation = np.eye(3) + sine * cross + one_minus_cosine * (cross @ cross)
+    step = np.eye(4)
+    step[:3, :3] = rotation
+    for axis in range(3):
+        step[axis, 3] = pivot[axis] + solution[3 + axis] - (
+            rotation[axis, 0] * pivot[0] + rotation[axis, 1] * pivot[1] + rotation[axis, 2] * pivot[2]
+        )
+    return step
+
+
+@jit
+def motion_size(pose: np.ndarray, earlier: np.ndarray, distance: float) -> float:
+    """How far the rigid (4, 4) ``pose`` is from ``earlier``: the rotation angle (radians) of
+    pose @ earlier^-1 plus its translation divided by ``distance`` (a stage's correspondence
+    distance, so that a tighter stage converges as tightly). The angle from the skew part of
+    the relative rotation (2 sin(angle) times its axis) and its trace (the cosine's sign): exact
+    at every angle."""
+    relative = np.zeros((3, 3))
+    for row in range(3):
+        for column in range(3):
+            for k in range(3):
+                relative[row, column] += pose[row, k] * earlier[column, k]
+    sine = 0.5 * np.sqrt(
+        (relative[2, 1] - relative[1, 2]) ** 2 + (relative[0, 2] - relative[2, 0]) ** 2
+        + (relative[1, 0] - relative[0, 1]) ** 2
+    )
+    angle = np.arcsin(min(sine, 1.0))
+    if relative[0, 0] + relative[1, 1] + relative[2, 2] < 1.0:  # cos(angle) < 0: past 90 degrees
+        angle = np.pi - angle
+    squared = 0.0
+    for axis in range(3):
+        moved = pose[axis, 3] - (relative[axis, 0] * earlier[0, 3] + relative[axis, 1] * earlier[1, 3]
+                                 + relative[axis, 2] * earlier[2, 3])
+        squared += moved * moved
+    return angle + np.sqrt(squared) / distance
