@@ -5,8 +5,8 @@
 Writes DIR/descriptor.onnx (edges, points -> descriptors), DIR/matcher.onnx (descriptors and
 normals of both clouds -> scores), for the invariant network DIR/matcher_same_size.onnx (the
 same function for two clouds of one size, both in one batch) and DIR/manifest.json (configs,
-dustbin score, working size, SHA-256 checksums, provenance). The configs and the dustbin score are also written into each
-ONNX file's metadata. Both graphs have dynamic point counts. Then: ``onnx.checker`` on each
+dustbin score, working size, SHA-256 checksums, provenance). The configs and the dustbin score
+are also written into each ONNX file's metadata. The graphs have dynamic point counts. Then: ``onnx.checker`` on each
 file, and onnxruntime against torch on random inputs and on a real ModelNet10 shape (if the
 shared data is present), printing the largest absolute difference against the tolerance; the
 script exits with status 1 if any comparison fails. The default DIR is the bundled model
@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,6 +54,19 @@ SCORE_RELATIVE_TOLERANCE = 1e-4
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
+class _Graph(NamedTuple):
+    """One exported graph: its file, the module traced, its inputs by name (examples and the
+    name of each one's point axis) and its output's name and dynamic axes."""
+
+    file_name: str
+    module: torch.nn.Module
+    input_names: tuple[str, ...]
+    output_name: str
+    output_axes: dict[int, str]
+    example_inputs: dict[str, torch.Tensor]
+    input_axes: dict[str, str]
+
+
 def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: dict) -> ModelManifest:
     """Write the two ONNX graphs and the manifest into ``out_dir``; return the manifest.
 
@@ -84,26 +98,27 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
     source_axis, target_axis = POINT_AXES  # the runtime fixes them by name (OnnxNetwork.fixed_points)
     point_axis = {name: (target_axis if name.endswith("_target") else source_axis) for name in examples}
     graphs = [
-        (DescribeModule(model), model.describe_inputs, "descriptors", {1: source_axis}, DESCRIPTOR_FILE, examples, point_axis),
-        (MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: target_axis}, MATCHER_FILE,
-         examples, point_axis),
+        _Graph(DESCRIPTOR_FILE, DescribeModule(model), model.describe_inputs, "descriptors", {1: source_axis},
+               examples, point_axis),
+        _Graph(MATCHER_FILE, MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: target_axis},
+               examples, point_axis),
     ]
     if config.architecture == "invariant":
         # Traced with two clouds of one size, the invariant transformer stacks them in one batch
         # (InvariantTransformer.forward); every input's point axis is the source's.
         same_size = {name: examples[name.replace("_target", "_source")].clone() for name in model.match_inputs}
-        graphs.append((MatchScoresModule(model), model.match_inputs, "scores", {1: source_axis, 2: source_axis},
-                       SAME_SIZE_MATCHER_FILE, same_size, dict.fromkeys(point_axis, source_axis)))
+        graphs.append(_Graph(SAME_SIZE_MATCHER_FILE, MatchScoresModule(model), model.match_inputs, "scores",
+                             {1: source_axis, 2: source_axis}, same_size, dict.fromkeys(point_axis, source_axis)))
     with torch.no_grad():
-        for module, input_names, output_name, output_axes, file_name, inputs, axes in graphs:
-            dynamic_axes = {name: {1: axes[name]} for name in input_names}
-            dynamic_axes[output_name] = output_axes
+        for graph in graphs:
+            dynamic_axes = {name: {1: graph.input_axes[name]} for name in graph.input_names}
+            dynamic_axes[graph.output_name] = graph.output_axes
             torch.onnx.export(
-                module,
-                tuple(inputs[name] for name in input_names),
-                str(out_dir / file_name),
-                input_names=list(input_names),
-                output_names=[output_name],
+                graph.module,
+                tuple(graph.example_inputs[name] for name in graph.input_names),
+                str(out_dir / graph.file_name),
+                input_names=list(graph.input_names),
+                output_names=[graph.output_name],
                 dynamic_axes=dynamic_axes,
                 opset_version=opset,
                 dynamo=False,
@@ -120,7 +135,7 @@ def export(model, info: CheckpointInfo, out_dir: Path, opset: int, provenance: d
         "logdesc_rt.dustbin_score": repr(float(model.dustbin_score.detach())),
         "logdesc_rt.points_per_cloud": str(info.points_per_cloud),
     }
-    files = [graph[4] for graph in graphs]
+    files = [graph.file_name for graph in graphs]
     for name in files:
         graph = onnx.load(str(out_dir / name))
         del graph.metadata_props[:]

@@ -192,8 +192,19 @@ def network_thread() -> ThreadPoolExecutor:
     global _NETWORK_THREAD
     with _NETWORK_THREAD_LOCK:
         if _NETWORK_THREAD is None:
-            _NETWORK_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logdesc-rt-network")
+            _NETWORK_THREAD = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="logdesc-rt-network", initializer=_flush_denormals
+            )
         return _NETWORK_THREAD
+
+
+def _flush_denormals() -> None:
+    """Each network thread's start: flush-to-zero set by this package too, so that a thread
+    started again (after a fork, or after onnxruntime's once-per-process set-up went to another
+    thread) has it as well."""
+    from .denormals import flush_denormals_on_this_thread  # deferred: it loads numba
+
+    flush_denormals_on_this_thread()
 
 
 _SECOND_NETWORK_THREAD: ThreadPoolExecutor | None = None
@@ -206,7 +217,9 @@ def second_network_thread() -> ThreadPoolExecutor:
     global _SECOND_NETWORK_THREAD
     with _NETWORK_THREAD_LOCK:
         if _SECOND_NETWORK_THREAD is None:
-            _SECOND_NETWORK_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logdesc-rt-network-2")
+            _SECOND_NETWORK_THREAD = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="logdesc-rt-network-2", initializer=_flush_denormals
+            )
         return _SECOND_NETWORK_THREAD
 
 
@@ -335,8 +348,9 @@ class OnnxNetwork:
             from .denormals import flush_denormals_on_this_thread  # deferred: it loads numba
 
             cores = self.threads if self.threads is not None else (os.cpu_count() or 1)
-            flushed = [thread().submit(flush_denormals_on_this_thread).result() for thread in (network_thread, second_network_thread)]
-            self._side_by_side = cores >= 2 and all(flushed)
+            self._side_by_side = cores >= 2 and all(
+                thread().submit(flush_denormals_on_this_thread).result() for thread in (network_thread, second_network_thread)
+            )
             if self._side_by_side:
                 self._half_descriptor = network_thread().submit(
                     self._load, DESCRIPTOR_FILE, self.fixed_points, cores // 2
