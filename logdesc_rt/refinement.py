@@ -227,8 +227,8 @@ def icp(
             most this many of those source points, and one more stage at the last stage's
             distance then polishes the pose on all of them (None: every stage on all). The
             stages only bring the pose near the fixed point of the last distance, which the
-            polish reaches from there in a few iterations: on 40k-point scans about a third of
-            the work for the same pose within ICP's tolerance (:class:`~logdesc_rt.config.RefinementConfig`).
+            polish reaches from there in a few iterations: on 40k-300k-point pairs about two
+            thirds of the time, for the same pose within ICP's tolerance.
         seed: seeds those subsets.
 
     Returns:

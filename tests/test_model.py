@@ -341,6 +341,30 @@ def test_folded_edge_convolutions_equal_the_layers_as_trained():
     torch.testing.assert_close(alone, folded[1:], rtol=1e-5, atol=1e-5)
 
 
+def test_clouds_of_one_size_stacked_in_one_batch_get_what_each_gets_alone():
+    """The invariant transformer's stacked form (two clouds of one size in one batch, what
+    matcher_same_size.onnx exports): each cross layer's stacked form gives each cloud what the
+    two-cloud form gives it, for a batch of several pairs (each attending to its own partner),
+    and so does stacked_forward against forward, which runs the clouds one at a time."""
+    torch.manual_seed(5)
+    model = LoGDescMatcher(PRESETS["v4"]).eval()
+    transformer = model.transformer
+    generator = torch.Generator().manual_seed(6)
+    batch, count, width = 3, 150, PRESETS["v4"].descriptor_dim
+    source, target = (F.normalize(torch.randn(batch, count, width, generator=generator), dim=-1) for _ in range(2))
+    normals = [F.normalize(torch.randn(batch, count, 3, generator=generator), dim=-1) for _ in range(2)]
+    points = [torch.randn(batch, count, 3, generator=generator) for _ in range(2)]
+    with torch.no_grad():
+        layer = transformer.cross_layers[0]
+        stacked = layer.stacked(torch.cat((source, target)), batch)
+        apart = torch.cat(layer(source, target))
+        torch.testing.assert_close(stacked, apart, rtol=1e-5, atol=1e-5)
+        together = transformer.stacked_forward(source, target, *normals, *points)
+        one_at_a_time = transformer(source, target, *normals, *points)
+    for stacked_final, final in zip(together, one_at_a_time, strict=True):
+        torch.testing.assert_close(stacked_final, final, rtol=1e-5, atol=1e-5)
+
+
 def test_descriptor_only_preset_starts_with_cosine_scores_over_the_temperature():
     """v4_descriptor has no transformer layers, and its first scores are the descriptors'
     cosines over DESCRIPTOR_ONLY_TEMPERATURE (a random d x d map would give scores ~0.1)."""

@@ -326,18 +326,12 @@ class InvariantTransformer(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, N, d), (B, M, d) descriptors with their normals and positions -> (B, N, d), (B, M, d).
 
-        Clouds of one size (N = M) go through every layer together, stacked in one batch of 2B:
-        the same function in half the operator calls (exported as its own graph, which runs
-        ~8 % faster in onnxruntime at 384 points than the two clouds one after the other).
+        An ONNX export traced with clouds of one size (N = M) records :meth:`stacked_forward`
+        instead (``matcher_same_size.onnx``); torch itself runs the clouds one at a time, which
+        trains ~5 % faster on the CPU.
         """
-        if desc_src.shape[1] == desc_tgt.shape[1]:
-            batch = desc_src.shape[0]
-            parts = geometric_parts(torch.cat((points_src, points_tgt)), torch.cat((normals_src, normals_tgt)))
-            both = torch.cat((desc_src, desc_tgt))
-            for self_layer, cross_layer in zip(self.self_layers, self.cross_layers):
-                both = cross_layer.stacked(self_layer(both, *parts), batch)
-            both = self.projection(both)
-            return both[:batch], both[batch:]
+        if torch.onnx.is_in_onnx_export() and desc_src.shape[1] == desc_tgt.shape[1]:
+            return self.stacked_forward(desc_src, desc_tgt, normals_src, normals_tgt, points_src, points_tgt)
         parts_src = geometric_parts(points_src, normals_src)
         parts_tgt = geometric_parts(points_tgt, normals_tgt)
         src, tgt = desc_src, desc_tgt
@@ -346,6 +340,26 @@ class InvariantTransformer(nn.Module):
             tgt = self_layer(tgt, *parts_tgt)
             src, tgt = cross_layer(src, tgt)
         return self.projection(src), self.projection(tgt)
+
+    def stacked_forward(
+        self,
+        desc_src: torch.Tensor,
+        desc_tgt: torch.Tensor,
+        normals_src: torch.Tensor,
+        normals_tgt: torch.Tensor,
+        points_src: torch.Tensor,
+        points_tgt: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` of two clouds of one size (N = M), stacked in one batch of 2B through
+        every layer: the same function in half the operator calls, which runs ~8 % faster in
+        onnxruntime at 384 points than the two clouds one after the other."""
+        batch = desc_src.shape[0]
+        parts = geometric_parts(torch.cat((points_src, points_tgt)), torch.cat((normals_src, normals_tgt)))
+        both = torch.cat((desc_src, desc_tgt))
+        for self_layer, cross_layer in zip(self.self_layers, self.cross_layers):
+            both = cross_layer.stacked(self_layer(both, *parts), batch)
+        both = self.projection(both)
+        return both[:batch], both[batch:]
 
 
 def geometric_parts(points: torch.Tensor, normals: torch.Tensor):
