@@ -198,13 +198,17 @@ def network_thread() -> ThreadPoolExecutor:
         return _NETWORK_THREAD
 
 
-def _flush_denormals() -> None:
-    """Each network thread's start: flush-to-zero set by this package too, so that a thread
-    started again (after a fork, or after onnxruntime's once-per-process set-up went to another
-    thread) has it as well."""
-    from .denormals import flush_denormals_on_this_thread  # deferred: it loads numba
+def _flush_denormals() -> bool:
+    """Flush-to-zero on the calling thread, set by this package (each network thread's start,
+    so that a thread started again, after a fork or after onnxruntime's once-per-process set-up
+    went to another thread, has it as well). True if it is set; never raises: a thread pool
+    whose initializer raises runs nothing."""
+    try:
+        from .denormals import flush_denormals_on_this_thread  # deferred: it loads numba
 
-    flush_denormals_on_this_thread()
+        return flush_denormals_on_this_thread()
+    except Exception:  # noqa: BLE001 (an unusable numba / llvmlite: onnxruntime's own set-up stays)
+        return False
 
 
 _SECOND_NETWORK_THREAD: ThreadPoolExecutor | None = None
@@ -345,11 +349,9 @@ class OnnxNetwork:
         """Whether :meth:`describe_pair` runs its two clouds at once (decided at its first call:
         at least two threads, flush-to-zero set on both network threads); creates the session."""
         if self._side_by_side is None:
-            from .denormals import flush_denormals_on_this_thread  # deferred: it loads numba
-
             cores = self.threads if self.threads is not None else (os.cpu_count() or 1)
             self._side_by_side = cores >= 2 and all(
-                thread().submit(flush_denormals_on_this_thread).result() for thread in (network_thread, second_network_thread)
+                thread().submit(_flush_denormals).result() for thread in (network_thread, second_network_thread)
             )
             if self._side_by_side:
                 self._half_descriptor = network_thread().submit(

@@ -427,3 +427,26 @@ def test_a_pairs_descriptors_side_by_side_are_each_clouds_own(registrar, demo_pa
     unfixed = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
     unfixed.describe_pair(*cut)
     assert unfixed._side_by_side is None and unfixed._half_descriptor is None
+
+
+def test_descriptors_go_one_after_the_other_where_flush_to_zero_cannot_be_set(registrar, demo_pair, monkeypatch):
+    """If this package cannot set flush-to-zero (another platform, a numba that fails), the two
+    clouds go through the descriptor one after the other, with the same descriptors."""
+    import logdesc_rt.denormals
+    from logdesc_rt.network import OnnxNetwork
+
+    def broken() -> bool:
+        raise RuntimeError("no MXCSR here")
+
+    monkeypatch.setattr(logdesc_rt.denormals, "flush_denormals_on_this_thread", broken)
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    clouds = [
+        {"edges": geometry.edges, "points": points, "normals": geometry.normals}
+        for geometry, points in ((prepared.source_geometry, prepared.source_network),
+                                 (prepared.target_geometry, prepared.target_network))
+    ]
+    network = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
+    paired = network.describe_pair(*clouds)
+    assert network._side_by_side is False and network._half_descriptor is None
+    for together, cloud in zip(paired, clouds, strict=True):
+        np.testing.assert_array_equal(together, network.describe(**cloud))
