@@ -180,8 +180,21 @@ def read_manifest(model_dir: Path) -> ModelManifest:
     return manifest
 
 
-_NETWORK_THREAD: ThreadPoolExecutor | None = None
+# The package's network threads, started on first use: [network_thread, second_network_thread].
+_NETWORK_THREADS: list[ThreadPoolExecutor | None] = [None, None]
 _NETWORK_THREAD_LOCK = threading.Lock()
+
+
+def _started_network_thread(slot: int) -> ThreadPoolExecutor:
+    """Network thread number ``slot`` (0 or 1), started on first use with flush-to-zero set
+    (:func:`_flush_denormals`)."""
+    with _NETWORK_THREAD_LOCK:
+        if _NETWORK_THREADS[slot] is None:
+            _NETWORK_THREADS[slot] = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix=("logdesc-rt-network", "logdesc-rt-network-2")[slot],
+                initializer=_flush_denormals,
+            )
+        return _NETWORK_THREADS[slot]
 
 
 def network_thread() -> ThreadPoolExecutor:
@@ -189,13 +202,14 @@ def network_thread() -> ThreadPoolExecutor:
     package: it carries onnxruntime's flush-to-zero mode (see :class:`OnnxNetwork`), which the
     caller's threads never see. Calls from several threads queue here, one graph at a time; each
     graph still uses its session's intra-op threads."""
-    global _NETWORK_THREAD
-    with _NETWORK_THREAD_LOCK:
-        if _NETWORK_THREAD is None:
-            _NETWORK_THREAD = ThreadPoolExecutor(
-                max_workers=1, thread_name_prefix="logdesc-rt-network", initializer=_flush_denormals
-            )
-        return _NETWORK_THREAD
+    return _started_network_thread(0)
+
+
+def second_network_thread() -> ThreadPoolExecutor:
+    """A second thread for the networks, with flush-to-zero set by this package
+    (:func:`~logdesc_rt.denormals.flush_denormals_on_this_thread`): it runs one cloud's
+    descriptor while :func:`network_thread` runs the other's (:meth:`OnnxNetwork.describe_pair`)."""
+    return _started_network_thread(1)
 
 
 def _flush_denormals() -> bool:
@@ -211,26 +225,10 @@ def _flush_denormals() -> bool:
         return False
 
 
-_SECOND_NETWORK_THREAD: ThreadPoolExecutor | None = None
-
-
-def second_network_thread() -> ThreadPoolExecutor:
-    """A second thread for the networks, with flush-to-zero set by this package
-    (:func:`~logdesc_rt.denormals.flush_denormals_on_this_thread`): it runs one cloud's
-    descriptor while :func:`network_thread` runs the other's (:meth:`OnnxNetwork.describe_pair`)."""
-    global _SECOND_NETWORK_THREAD
-    with _NETWORK_THREAD_LOCK:
-        if _SECOND_NETWORK_THREAD is None:
-            _SECOND_NETWORK_THREAD = ThreadPoolExecutor(
-                max_workers=1, thread_name_prefix="logdesc-rt-network-2", initializer=_flush_denormals
-            )
-        return _SECOND_NETWORK_THREAD
-
-
 def _forget_network_thread() -> None:
     # A forked child has no copy of the threads: start new ones when it first needs them.
-    global _NETWORK_THREAD, _SECOND_NETWORK_THREAD, _NETWORK_THREAD_LOCK
-    _NETWORK_THREAD, _SECOND_NETWORK_THREAD, _NETWORK_THREAD_LOCK = None, None, threading.Lock()
+    global _NETWORK_THREADS, _NETWORK_THREAD_LOCK
+    _NETWORK_THREADS, _NETWORK_THREAD_LOCK = [None, None], threading.Lock()
 
 
 os.register_at_fork(after_in_child=_forget_network_thread)

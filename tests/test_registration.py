@@ -401,18 +401,23 @@ def test_the_same_size_matcher_graph_scores_as_the_general_one(registrar, demo_p
     assert set(fresh._sessions) == {"descriptor.onnx", MATCHER_FILE}
 
 
+def _working_size_clouds(registrar, demo_pair) -> list[dict[str, np.ndarray]]:
+    """The demo pair's two clouds at the working size, as OnnxNetwork.describe's arguments."""
+    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
+    return [
+        {"edges": geometry.edges, "points": points, "normals": geometry.normals}
+        for geometry, points in ((prepared.source_geometry, prepared.source_network),
+                                 (prepared.target_geometry, prepared.target_network))
+    ]
+
+
 def test_a_pairs_descriptors_side_by_side_are_each_clouds_own(registrar, demo_pair):
     """describe_pair runs two working-size clouds at once on two threads with half the
     intra-op threads each (x86-64, two threads or more); its descriptors are describe's of each
     cloud within float32 rounding, and clouds of another size go one after the other."""
     from logdesc_rt.network import OnnxNetwork
 
-    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
-    clouds = [
-        {"edges": geometry.edges, "points": points, "normals": geometry.normals}
-        for geometry, points in ((prepared.source_geometry, prepared.source_network),
-                                 (prepared.target_geometry, prepared.target_network))
-    ]
+    clouds = _working_size_clouds(registrar, demo_pair)
     network = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
     paired = network.describe_pair(*clouds)
     assert network._side_by_side == X86_64
@@ -439,12 +444,7 @@ def test_descriptors_go_one_after_the_other_where_flush_to_zero_cannot_be_set(re
         raise RuntimeError("no MXCSR here")
 
     monkeypatch.setattr(logdesc_rt.denormals, "flush_denormals_on_this_thread", broken)
-    prepared = registrar.prepare(demo_pair.source, demo_pair.target)
-    clouds = [
-        {"edges": geometry.edges, "points": points, "normals": geometry.normals}
-        for geometry, points in ((prepared.source_geometry, prepared.source_network),
-                                 (prepared.target_geometry, prepared.target_network))
-    ]
+    clouds = _working_size_clouds(registrar, demo_pair)
     network = OnnxNetwork(threads=2, fixed_points=registrar.max_points)
     paired = network.describe_pair(*clouds)
     assert network._side_by_side is False and network._half_descriptor is None
