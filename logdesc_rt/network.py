@@ -24,7 +24,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
@@ -35,6 +34,7 @@ import numpy as np
 
 from .config import GeometryConfig, MatchingConfig, NormalizationConfig, RuntimeConfig
 from .errors import ModelFileError
+from .threads import ResidentThread
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = 1
@@ -104,7 +104,7 @@ class ModelManifest:
         }
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "ModelManifest":
+    def from_dict(cls, values: dict[str, Any]) -> ModelManifest:
         if values.get("format") != MANIFEST_FORMAT:
             raise ValueError(f"manifest format {values.get('format')!r}, expected {MANIFEST_FORMAT}")
         return cls(
@@ -180,36 +180,19 @@ def read_manifest(model_dir: Path) -> ModelManifest:
     return manifest
 
 
-# The package's network threads, started on first use: [network_thread, second_network_thread].
-_NETWORK_THREADS: list[ThreadPoolExecutor | None] = [None, None]
-_NETWORK_THREAD_LOCK = threading.Lock()
-
-
-def _started_network_thread(slot: int) -> ThreadPoolExecutor:
-    """Network thread number ``slot`` (0 or 1), started on first use with flush-to-zero set
-    (:func:`_flush_denormals`)."""
-    with _NETWORK_THREAD_LOCK:
-        if _NETWORK_THREADS[slot] is None:
-            _NETWORK_THREADS[slot] = ThreadPoolExecutor(
-                max_workers=1, thread_name_prefix=("logdesc-rt-network", "logdesc-rt-network-2")[slot],
-                initializer=_flush_denormals,
-            )
-        return _NETWORK_THREADS[slot]
-
-
 def network_thread() -> ThreadPoolExecutor:
     """The one thread (per process) that creates and runs every onnxruntime session of this
     package: it carries onnxruntime's flush-to-zero mode (see :class:`OnnxNetwork`), which the
     caller's threads never see. Calls from several threads queue here, one graph at a time; each
     graph still uses its session's intra-op threads."""
-    return _started_network_thread(0)
+    return _NETWORK_THREADS[0].executor()
 
 
 def second_network_thread() -> ThreadPoolExecutor:
     """A second thread for the networks, with flush-to-zero set by this package
     (:func:`~logdesc_rt.denormals.flush_denormals_on_this_thread`): it runs one cloud's
     descriptor while :func:`network_thread` runs the other's (:meth:`OnnxNetwork.describe_pair`)."""
-    return _started_network_thread(1)
+    return _NETWORK_THREADS[1].executor()
 
 
 def _flush_denormals() -> bool:
@@ -225,13 +208,12 @@ def _flush_denormals() -> bool:
         return False
 
 
-def _forget_network_thread() -> None:
-    # A forked child has no copy of the threads: start new ones when it first needs them.
-    global _NETWORK_THREADS, _NETWORK_THREAD_LOCK
-    _NETWORK_THREADS, _NETWORK_THREAD_LOCK = [None, None], threading.Lock()
-
-
-os.register_at_fork(after_in_child=_forget_network_thread)
+# The threads of network_thread and second_network_thread, each with flush-to-zero set at its start
+# (so that a thread started again, after a fork, has it as well).
+_NETWORK_THREADS = (
+    ResidentThread("logdesc-rt-network", initializer=_flush_denormals),
+    ResidentThread("logdesc-rt-network-2", initializer=_flush_denormals),
+)
 
 
 class OnnxNetwork:

@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Callable, Iterator, TypeVar
+from typing import TypeVar
 
 from threadpoolctl import ThreadpoolController
 
@@ -59,27 +60,39 @@ def one_thread_per_caller() -> Iterator[None]:
         yield
 
 
-_CLOUD_THREAD: ThreadPoolExecutor | None = None
-_CLOUD_THREAD_LOCK = threading.Lock()
+class ResidentThread:
+    """One worker thread per process, started on first use and kept between pairs (a thread
+    started for every pair costs about half a millisecond); a forked child, which has no copy of
+    it, starts its own when it first needs one.
+
+    Args:
+        name: the thread's name prefix (seen in profilers and ``threading.enumerate()``).
+        initializer: optional callable run once on the thread when it starts; it must not
+            raise (a thread pool whose initializer raises runs nothing).
+    """
+
+    def __init__(self, name: str, initializer: Callable[[], object] | None = None):
+        self._name = name
+        self._initializer = initializer
+        self._executor: ThreadPoolExecutor | None = None
+        self._lock = threading.Lock()
+        os.register_at_fork(after_in_child=self._forget)
+
+    def executor(self) -> ThreadPoolExecutor:
+        """The thread, as a one-worker executor (started here on the first call)."""
+        with self._lock:
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(
+                    max_workers=1, thread_name_prefix=self._name, initializer=self._initializer
+                )
+            return self._executor
+
+    def _forget(self) -> None:
+        self._executor, self._lock = None, threading.Lock()
 
 
-def _cloud_thread() -> ThreadPoolExecutor:
-    """The one worker thread (per process) that does the source cloud's share of :func:`per_cloud`.
-    Kept between pairs: a thread started for every pair costs about half a millisecond."""
-    global _CLOUD_THREAD
-    with _CLOUD_THREAD_LOCK:
-        if _CLOUD_THREAD is None:
-            _CLOUD_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logdesc-rt-cloud")
-        return _CLOUD_THREAD
-
-
-def _forget_cloud_thread() -> None:
-    # A forked child has no copy of the thread: start a new one when it first needs one.
-    global _CLOUD_THREAD, _CLOUD_THREAD_LOCK
-    _CLOUD_THREAD, _CLOUD_THREAD_LOCK = None, threading.Lock()
-
-
-os.register_at_fork(after_in_child=_forget_cloud_thread)
+# The worker that does the source cloud's share of per_cloud.
+_CLOUD_THREAD = ResidentThread("logdesc-rt-cloud")
 
 
 def per_cloud(function: Callable[..., T], source: tuple, target: tuple) -> tuple[T, T]:
@@ -96,6 +109,6 @@ def per_cloud(function: Callable[..., T], source: tuple, target: tuple) -> tuple
     # BLAS's count is process-wide and threadpoolctl lets one thread at a time set it: the caller
     # holds it at one for both calls, and the worker sets only its own OpenMP count.
     with one_thread_per_caller():
-        source_job = _cloud_thread().submit(source_on_the_worker)
+        source_job = _CLOUD_THREAD.executor().submit(source_on_the_worker)
         target_result = function(*target)
         return source_job.result(), target_result

@@ -11,7 +11,7 @@ import pykdtree.kdtree  # noqa: F401 (loads the OpenMP runtime the geometry uses
 import pytest
 from threadpoolctl import threadpool_info
 
-from logdesc_rt.threads import one_thread_per_caller, per_cloud
+from logdesc_rt.threads import ResidentThread, one_thread_per_caller, per_cloud
 
 
 def _counts() -> dict[str, int]:
@@ -66,3 +66,34 @@ def test_per_cloud_works_in_a_forked_child():
     context = multiprocessing.get_context("fork")
     with context.Pool(1) as pool:
         assert pool.apply(per_cloud, (str.upper, ("a",), ("b",))) == ("A", "B")
+
+
+def _started_count_and_thread_names(resident: ResidentThread) -> tuple[int, set[str]]:
+    names = {resident.executor().submit(lambda: threading.current_thread().name).result() for _ in range(5)}
+    return len(names), names
+
+
+def test_a_resident_thread_starts_once_runs_its_initializer_once_and_keeps_its_name():
+    started = []
+    resident = ResidentThread("test-resident", initializer=lambda: started.append(threading.get_ident()))
+    count, names = _started_count_and_thread_names(resident)
+    assert resident.executor() is resident.executor()
+    assert count == 1 and next(iter(names)).startswith("test-resident")
+    assert len(started) == 1 and started[0] != threading.get_ident()
+
+
+_FORKED = ResidentThread("test-resident-forked")
+
+
+def _thread_ident_in_child() -> int:
+    return _FORKED.executor().submit(threading.get_ident).result()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_resident_thread_is_started_afresh_in_a_forked_child():
+    parent_ident = _FORKED.executor().submit(threading.get_ident).result()  # exists before the fork
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        # Without a fresh start the child's call would wait forever on the parent's thread.
+        child_ident = pool.apply_async(_thread_ident_in_child).get(timeout=30)
+    assert isinstance(child_ident, int)
+    assert _FORKED.executor().submit(threading.get_ident).result() == parent_ident
