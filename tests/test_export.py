@@ -85,3 +85,28 @@ def test_export_script_writes_a_loadable_checked_model(tmp_path):
     expected = sinkhorn_matches(matched.scores, registrar.manifest.dustbin_score, config.sinkhorn_iterations)
     np.testing.assert_array_equal(matched.matches.source_index, expected.source_index)
     np.testing.assert_array_equal(matched.matches.target_index, expected.target_index)
+
+
+def test_the_bundled_graphs_feed_the_fused_attention_without_transposes():
+    """Queries, keys and values are built heads-last, the fused kernel's own layout: no Transpose
+    among the three nodes before any attention input or right after its output. With heads
+    split to (B, H, N, d) and merged back around the kernel, the matcher had 67 Transposes."""
+    import onnx
+
+    for name in ("descriptor.onnx", "matcher.onnx", "matcher_same_size.onnx"):
+        graph = onnx.load(str(bundled_model_dir() / name)).graph
+        producer = {output: node for node in graph.node for output in node.output}
+        consumers: dict[str, list] = {}
+        for node in graph.node:
+            for tensor in node.input:
+                consumers.setdefault(tensor, []).append(node)
+        attention = [node for node in graph.node if node.op_type == "MultiHeadAttention"]
+        assert attention, name
+        for node in attention:
+            for tensor in node.input[:3]:
+                chain = []
+                while tensor in producer and len(chain) < 3:
+                    chain.append(producer[tensor].op_type)
+                    tensor = producer[tensor].input[0]
+                assert "Transpose" not in chain, (name, node.name, chain)
+            assert all(after.op_type != "Transpose" for after in consumers.get(node.output[0], [])), (name, node.name)

@@ -280,18 +280,18 @@ def test_v3_holds_no_tensor_of_n_by_n_by_d_elements():
 
 
 def test_v3_attention_fast_paths_equal_the_explicit_softmax_with_gradients():
-    """attend() pads narrow values for torch's fused kernel, and the cross layer runs it once per
-    direction; both must equal softmax(S) V written out, values and gradients."""
+    """attend() (heads-last) pads narrow values for torch's fused kernel, and the cross layer runs
+    it once per direction; both must equal softmax(S) V written out, values and gradients."""
     from training.invariant_model import BidirectionalCrossLayer, attend
-    from training.layers import split_heads
+    from training.layers import merge_heads, split_heads
 
     generator = torch.Generator().manual_seed(8)
-    query = torch.randn(2, 3, 40, 11, generator=generator, requires_grad=True)
+    query = torch.randn(2, 3, 40, 11, generator=generator, requires_grad=True)  # (B, H, N, d)
     key = torch.randn(2, 3, 50, 11, generator=generator, requires_grad=True)
     value = torch.randn(2, 3, 50, 4, generator=generator, requires_grad=True)
-    fast = attend(query, key, value, heads=3)
-    explicit = torch.softmax(query @ key.transpose(2, 3), dim=3) @ value
-    assert fast.shape == explicit.shape == (2, 3, 40, 4)
+    fast = attend(query.transpose(1, 2), key.transpose(1, 2), value.transpose(1, 2), heads=3)
+    explicit = merge_heads(torch.softmax(query @ key.transpose(2, 3), dim=3) @ value)
+    assert fast.shape == explicit.shape == (2, 40, 12)
     torch.testing.assert_close(fast, explicit, rtol=1e-5, atol=1e-6)
     weights = torch.randn(fast.shape, generator=generator)
     fast_grads = torch.autograd.grad((fast * weights).sum(), (query, key, value))
@@ -307,8 +307,8 @@ def test_v3_attention_fast_paths_equal_the_explicit_softmax_with_gradients():
         return split_heads(x, 3)
 
     logits = split(layer.query_key(source)) @ split(layer.query_key(target)).transpose(2, 3) / 2.0
-    source_message = torch.softmax(logits, dim=3) @ split(layer.value(target))
-    target_message = torch.softmax(logits, dim=2).transpose(2, 3) @ split(layer.value(source))
+    source_message = merge_heads(torch.softmax(logits, dim=3) @ split(layer.value(target)))
+    target_message = merge_heads(torch.softmax(logits, dim=2).transpose(2, 3) @ split(layer.value(source)))
     torch.testing.assert_close(new_source, layer.update(source, source_message), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(new_target, layer.update(target, target_message), rtol=1e-5, atol=1e-5)
 

@@ -112,11 +112,17 @@ class _ExportedAttention(torch.autograd.Function):
 
 
 def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: int) -> torch.Tensor:
-    """softmax_j(q_i . k_j) v_j per head, queries pre-scaled; (B, H, N, dq), (B, H, M, dq),
-    (B, H, M, dv) -> (B, H, N, dv). Exported as the fused kernel (:class:`_ExportedAttention`)."""
+    """softmax_j(q_i . k_j) v_j per head, queries pre-scaled, heads-last:
+    (B, N, H, dq), (B, M, H, dq), (B, M, H, dv) -> (B, N, H dv); ``heads`` = H as a Python int
+    (an exported graph's shapes are traced tensors).
+
+    Heads-last is the fused kernel's own layout (:class:`_ExportedAttention`, whose inputs are
+    the heads side by side), so the exported graphs reshape into it without transposing; torch's
+    kernel reads the same tensors as (B, H, N, d) views."""
+    batch, count = query.shape[0], query.shape[1]
     if torch.onnx.is_in_onnx_export():
-        fused = _ExportedAttention.apply(merge_heads(query), merge_heads(key), merge_heads(value), heads)
-        return split_heads(fused, heads)
+        return _ExportedAttention.apply(query.flatten(2), key.flatten(2), value.flatten(2), heads)
+    query, key, value = query.transpose(1, 2), key.transpose(1, 2), value.transpose(1, 2)
     value_width, query_width = value.shape[-1], query.shape[-1]
     if value_width < query_width:
         # torch's fused (flash) kernels need one head width for q, k and v; without it SDPA falls
@@ -124,8 +130,15 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
         # columns of v change nothing but cost far less: one training step on the CPU went from
         # ~0.7 s to ~0.4 s per attention pass (8 x 768 points, 4 heads of 50 / 24 channels).
         value = F.pad(value, (0, query_width - value_width))
-        return F.scaled_dot_product_attention(query, key, value, scale=1.0)[..., :value_width]
-    return F.scaled_dot_product_attention(query, key, value, scale=1.0)
+        attended = F.scaled_dot_product_attention(query, key, value, scale=1.0)[..., :value_width]
+    else:
+        attended = F.scaled_dot_product_attention(query, key, value, scale=1.0)
+    return attended.transpose(1, 2).reshape(batch, count, -1)
+
+
+def _heads_last(x: torch.Tensor, heads: int) -> torch.Tensor:
+    """(B, N, C) -> (B, N, H, C / H): head h holds channels [h C / H, (h + 1) C / H)."""
+    return x.reshape(x.shape[0], x.shape[1], heads, -1)
 
 
 class _Update(nn.Module):
@@ -139,8 +152,8 @@ class _Update(nn.Module):
         self.update_norm = nn.LayerNorm(width)
 
     def forward(self, x: torch.Tensor, attended: torch.Tensor) -> torch.Tensor:
-        """x: (B, N, w); attended: (B, H, N, w / H) -> (B, N, w)."""
-        message = self.message_norm(self.merge(merge_heads(attended)))
+        """x: (B, N, w); attended: (B, N, w), the heads side by side -> (B, N, w)."""
+        message = self.message_norm(self.merge(attended))
         return x + self.update_norm(self.mlp(torch.cat((x, message), dim=-1)))
 
 
@@ -188,25 +201,25 @@ class GeometricSelfLayer(nn.Module):
             normal_parts: from :func:`normal_channels`, (B, N, 6) and (B, N, 15).
         """
         batch, count, heads = x.shape[0], x.shape[1], self.heads
-        query = split_heads(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))
-        key = split_heads(self.key(x), heads)
-        value = split_heads(self.value(x), heads)
+        query = _heads_last(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))  # (B, N, H, d)
+        key = _heads_last(self.key(x), heads)
+        value = _heads_last(self.value(x), heads)
 
         distance_query, distance_key = distance_parts  # (B, N, 5)
-        locality = torch.exp(self.log_locality).reshape(1, heads, 1, 1)
+        locality = torch.exp(self.log_locality).reshape(1, 1, heads, 1)
         degree2, degree4 = normal_parts
-        coefficients = self.normal_coefficients(x).reshape(batch, count, heads, 2).transpose(1, 2)
+        coefficients = self.normal_coefficients(x).reshape(batch, count, heads, 2)
         query = torch.cat(
             (
                 query,
-                locality * distance_query.unsqueeze(1),
-                coefficients[..., 0:1] * degree2.unsqueeze(1),
-                coefficients[..., 1:2] * degree4.unsqueeze(1),
+                locality * distance_query.unsqueeze(2),
+                coefficients[..., 0:1] * degree2.unsqueeze(2),
+                coefficients[..., 1:2] * degree4.unsqueeze(2),
             ),
             dim=-1,
         )
-        geometry_key = torch.cat((distance_key, degree2, degree4), dim=-1).unsqueeze(1)
-        key = torch.cat((key, geometry_key.expand(batch, heads, count, -1)), dim=-1)
+        geometry_key = torch.cat((distance_key, degree2, degree4), dim=-1).unsqueeze(2)
+        key = torch.cat((key, geometry_key.expand(batch, count, heads, -1)), dim=-1)
         return self.update(x, attend(query, key, value, heads))
 
 
@@ -247,11 +260,11 @@ class BidirectionalCrossLayer(nn.Module):
         return self.update(both, self._message(qk, partner(qk), partner(value)))
 
     def _projections(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, N, w) -> the shared query / key and the values, each (B, H, N, w / H)."""
-        return split_heads(self.query_key(x), self.heads), split_heads(self.value(x), self.heads)
+        """(B, N, w) -> the shared query / key and the values, each (B, N, H, w / H)."""
+        return _heads_last(self.query_key(x), self.heads), _heads_last(self.value(x), self.heads)
 
     def _message(self, qk: torch.Tensor, other_qk: torch.Tensor, other_value: torch.Tensor) -> torch.Tensor:
-        """What each point of one cloud gathers from the other: (B, H, N, w / H)."""
+        """What each point of one cloud gathers from the other: (B, N, w), the heads side by side."""
         return attend(qk * (1.0 / math.sqrt(self.head_dim)), other_qk, other_value, self.heads)
 
 
