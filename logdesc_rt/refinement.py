@@ -375,7 +375,7 @@ def _icp_stage(
             )
             if pairs < MIN_CORRESPONDENCES:
                 return pose, iteration - 1, "too_few_correspondences"
-            step = _plane_step(matrix, rhs, pivot)
+            step = plane_step(matrix, rhs, pivot)
         pose = step @ pose
         if motion_size(step, _IDENTITY, max_distance) < tolerance:
             return pose, iteration, "converged"
@@ -421,13 +421,6 @@ def plane_fit_step(
         for axis in np.eye(3):
             axis_matrix, axis_rhs = _normal_equations(arm, offset, np.broadcast_to(axis, arm.shape), point_weights)
             matrix, rhs = matrix + axis_matrix, rhs + axis_rhs
-    return _plane_step(matrix, rhs, pivot)
-
-
-def _plane_step(matrix: np.ndarray, rhs: np.ndarray, pivot: np.ndarray) -> np.ndarray:
-    """(4, 4) update from the (6, 6) / (6,) linearised plane-fit equations about ``pivot`` (3,)
-    (:func:`~logdesc_rt.pose.kernels.plane_step`: the minimum-norm solution, so that a motion
-    the surface leaves free, a plane's or a cylinder's, gets no step)."""
     return plane_step(matrix, rhs, pivot)
 
 

@@ -195,7 +195,7 @@ def test_icp_stops_when_its_pose_comes_back(monkeypatch, steps, stops_after):
         step[:3, :3] = (turn ** next(updates)).as_matrix()
         return step
 
-    monkeypatch.setattr(refinement, "_plane_step", scripted_step)
+    monkeypatch.setattr(refinement, "plane_step", scripted_step)
     points = np.random.default_rng(0).normal(size=(50, 3))
     normals = refinement._GivenNormals(np.tile([0.0, 0.0, 1.0], (50, 1)))
     _, iterations, reason = refinement._icp_stage(points, points, KDTree(points), normals, np.eye(4), 10.0, 30, 1e-7)
