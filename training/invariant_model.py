@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ModelConfig
-from .layers import edge_convolutions, folded_edge_convolutions, merge_heads, split_heads
+from .layers import edge_convolutions, folded_edge_convolutions, heads_last, merge_heads, split_heads
 from .losses import INFONCE_TEMPERATURE
 
 
@@ -136,11 +136,6 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
     return attended.transpose(1, 2).reshape(batch, count, -1)
 
 
-def _heads_last(x: torch.Tensor, heads: int) -> torch.Tensor:
-    """(B, N, C) -> (B, N, H, C / H): head h holds channels [h C / H, (h + 1) C / H)."""
-    return x.reshape(x.shape[0], x.shape[1], heads, -1)
-
-
 class _Update(nn.Module):
     """LoGDesc's residual update: x <- x + LayerNorm(MLP([x, LayerNorm(merge(message))]))."""
 
@@ -201,9 +196,9 @@ class GeometricSelfLayer(nn.Module):
             normal_parts: from :func:`normal_channels`, (B, N, 6) and (B, N, 15).
         """
         batch, count, heads = x.shape[0], x.shape[1], self.heads
-        query = _heads_last(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))  # (B, N, H, d)
-        key = _heads_last(self.key(x), heads)
-        value = _heads_last(self.value(x), heads)
+        query = heads_last(self.query(x), heads) * (1.0 / math.sqrt(self.head_dim))  # (B, N, H, d)
+        key = heads_last(self.key(x), heads)
+        value = heads_last(self.value(x), heads)
 
         distance_query, distance_key = distance_parts  # (B, N, 5)
         locality = torch.exp(self.log_locality).reshape(1, 1, heads, 1)
@@ -261,7 +256,7 @@ class BidirectionalCrossLayer(nn.Module):
 
     def _projections(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, N, w) -> the shared query / key and the values, each (B, N, H, w / H)."""
-        return _heads_last(self.query_key(x), self.heads), _heads_last(self.value(x), self.heads)
+        return heads_last(self.query_key(x), self.heads), heads_last(self.value(x), self.heads)
 
     def _message(self, qk: torch.Tensor, other_qk: torch.Tensor, other_value: torch.Tensor) -> torch.Tensor:
         """What each point of one cloud gathers from the other: (B, N, w), the heads side by side."""

@@ -75,9 +75,14 @@ def folded_edge_convolutions(local: nn.Sequential, edges: torch.Tensor) -> torch
     return pooled[..., :-1]
 
 
+def heads_last(x: torch.Tensor, heads: int) -> torch.Tensor:
+    """(B, N, C) -> (B, N, H, C / H): head h holds channels [h C / H, (h + 1) C / H)."""
+    return x.reshape(x.shape[0], x.shape[1], heads, -1)
+
+
 def split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
     """(B, N, C) -> (B, H, N, C / H)."""
-    return x.reshape(x.shape[0], x.shape[1], heads, -1).transpose(1, 2)
+    return heads_last(x, heads).transpose(1, 2)
 
 
 def merge_heads(x: torch.Tensor) -> torch.Tensor:
