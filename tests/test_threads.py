@@ -68,17 +68,12 @@ def test_per_cloud_works_in_a_forked_child():
         assert pool.apply(per_cloud, (str.upper, ("a",), ("b",))) == ("A", "B")
 
 
-def _started_count_and_thread_names(resident: ResidentThread) -> tuple[int, set[str]]:
-    names = {resident.executor().submit(lambda: threading.current_thread().name).result() for _ in range(5)}
-    return len(names), names
-
-
 def test_a_resident_thread_starts_once_runs_its_initializer_once_and_keeps_its_name():
     started = []
     resident = ResidentThread("test-resident", initializer=lambda: started.append(threading.get_ident()))
-    count, names = _started_count_and_thread_names(resident)
+    names = {resident.executor().submit(lambda: threading.current_thread().name).result() for _ in range(5)}
     assert resident.executor() is resident.executor()
-    assert count == 1 and next(iter(names)).startswith("test-resident")
+    assert len(names) == 1 and next(iter(names)).startswith("test-resident")
     assert len(started) == 1 and started[0] != threading.get_ident()
 
 
