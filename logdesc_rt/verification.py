@@ -100,6 +100,11 @@ SPUN = "spun"  # the second look's half-turn about the source's least principal 
 TURN_OVER_SCREEN_POINTS = 256
 TURN_OVER_SCREEN_ITERATIONS = 10
 UNEXPLAINED_PREFIX = "unexplained_"  # + estimator: the second consensus's hypotheses
+# The scoring queries look no farther than the inlier distance d (a point beyond it only counts
+# as not an inlier), which prunes most of the search for a wrong or half-turned pose. The bound
+# sits a hair above d: the k-d tree tests squared distances, and no point that the features'
+# own test (distance < d) counts may be dropped by a rounding of d squared.
+QUERY_BOUND_MARGIN = 1.0 + 1e-9
 
 
 @dataclass(frozen=True)
@@ -237,6 +242,7 @@ class PoseVerifier:
         self.target_matched = target_matched
         self.confidences = confidences
         self.distance = config.distance_fraction * scale
+        self.query_bound = self.distance * QUERY_BOUND_MARGIN
         # One tree of the scored target serves the spacing, every pose's query and its normals;
         # the target's set-up runs beside the source's normals (most of this set-up's time).
         target_setup = functools.partial(_target_tree_spacing_normals, source_count=len(self.source))
@@ -286,12 +292,12 @@ class PoseVerifier:
         """(F,) float64 features of ``pose`` (module docstring), in VERIFICATION_FEATURES order."""
         rotation, translation = pose[:3, :3], pose[:3, 3]
         moved = self.source @ rotation.T + translation
-        distance, index = self.target_tree.query(moved, k=1)
+        distance, index = self.target_tree.query(moved, k=1, distance_upper_bound=self.query_bound)
         inlier = distance < self.distance
         fitness = float(np.mean(inlier))
         sharp = float(np.mean(distance[inlier] < self.sharp_distance)) if inlier.any() else 0.0
         rmse = float(np.sqrt(np.mean(distance[inlier] ** 2)) / self.distance) if inlier.any() else 1.0
-        reverse_distance, _ = KDTree(moved).query(self.target, k=1)
+        reverse_distance, _ = KDTree(moved).query(self.target, k=1, distance_upper_bound=self.query_bound)
         reverse = float(np.mean(reverse_distance < self.distance))
         if inlier.any():
             moved_normals = self.source_normals[inlier] @ rotation.T
@@ -306,8 +312,7 @@ class PoseVerifier:
         flipped_fitness = 0.0
         for turn in self.half_turns:
             flipped = pose @ turn
-            flipped_distance, _ = self.target_tree.query(self.source @ flipped[:3, :3].T + flipped[:3, 3], k=1)
-            flipped_fitness = max(flipped_fitness, float(np.mean(flipped_distance < self.distance)))
+            flipped_fitness = max(flipped_fitness, self.fitness(flipped))
         symmetry = min(1.5, flipped_fitness / fitness) if fitness > 0 else 0.0
         values = {
             "fitness": fitness,
@@ -325,7 +330,8 @@ class PoseVerifier:
 
     def fitness(self, pose: np.ndarray) -> float:
         """The ``fitness`` feature of ``pose`` alone (one k-d tree query)."""
-        distance, _ = self.target_tree.query(self.source @ pose[:3, :3].T + pose[:3, 3], k=1)
+        moved = self.source @ pose[:3, :3].T + pose[:3, 3]
+        distance, _ = self.target_tree.query(moved, k=1, distance_upper_bound=self.query_bound)
         return float(np.mean(distance < self.distance))
 
     def quick_score(self, pose: np.ndarray) -> float:

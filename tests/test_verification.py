@@ -918,3 +918,26 @@ def test_thorough_verifies_every_candidate_even_where_the_fast_exit_is_sure(regi
     assert not thorough.verification.fast_exit
     assert np.array_equal(thorough.transformation, full.transformation) and thorough.confidence == full.confidence
     assert not thorough.config.verification.fast_exit
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_bounded_scoring_queries_give_the_features_of_unbounded_ones(noise):
+    """The scoring queries stop at the inlier distance (QUERY_BOUND_MARGIN): the features of a
+    right pose, slightly and far wrong ones and a half-turn must be those of full nearest-
+    neighbour searches, value for value. A bound that dropped an inlier would change them."""
+    rng = np.random.default_rng(5)
+    source = _plate_with_a_ridge(rng)
+    truth = _rigid([0.3, -0.5, 0.9], [0.4, -0.2, 0.1])
+    target = source @ truth[:3, :3].T + truth[:3, 3] + rng.normal(scale=noise, size=source.shape)
+    matched = source[:50]
+    verifier = PoseVerifier(source, target, matched, matched @ truth[:3, :3].T + truth[:3, 3], np.full(50, 0.5), 1.0)
+    centre = source.mean(axis=0)
+    poses = [truth, _turned(truth, 2.0, centre), _turned(truth, 20.0, centre), _turned(truth, 180.0, centre)]
+    bounded = [verifier.features(pose) for pose in poses]
+    verifier.query_bound = np.inf
+    unbounded = [verifier.features(pose) for pose in poses]
+    for got, expected in zip(bounded, unbounded, strict=True):
+        assert np.array_equal(got, expected)
+    # The poses span the features: all inliers, some, and few.
+    fitness = [features[VERIFICATION_FEATURES.index("fitness")] for features in bounded]
+    assert max(fitness) > 0.9 and min(fitness) < 0.5
