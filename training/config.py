@@ -300,3 +300,7 @@ PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer
 # interleaved probe). v7's weights warm-start it (--init-from: the first two pairs are copied;
 # the neighbour count changes no weight's shape).
 PRESETS["v11"] = PRESETS["v4"].replace(transformer_layers=2, edge_neighbours=16)
+# v12: v7's network with two transformer pairs instead of three, its 30 edge neighbours kept, so
+# that v7 can teach it (training.train --distill-from: both read the same geometry) as well as
+# warm-start it (--init-from: the descriptor and the first two pairs copied).
+PRESETS["v12"] = PRESETS["v4"].replace(transformer_layers=2)
