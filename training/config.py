@@ -295,11 +295,6 @@ PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
 # it (--init-from: every weight it has is shaped as v5's; the first layers are copied).
 # Trained and not shipped (docs: decisions, v6).
 PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)
-# v11: v7's network (the v4 preset) with two transformer pairs instead of three and 16 edge
-# neighbours instead of 30 (issue #40: about 6 ms less network and geometry time per pair in an
-# interleaved probe). v7's weights warm-start it (--init-from: the first two pairs are copied;
-# the neighbour count changes no weight's shape).
-PRESETS["v11"] = PRESETS["v4"].replace(transformer_layers=2, edge_neighbours=16)
 # v12: v7's network with two transformer pairs instead of three, its 30 edge neighbours kept, so
 # that v7 can teach it (training.train --distill-from: both read the same geometry) as well as
 # warm-start it (--init-from: the descriptor and the first two pairs copied).
