@@ -295,6 +295,3 @@ PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
 # it (--init-from: every weight it has is shaped as v5's; the first layers are copied).
 # Trained and not shipped (docs: decisions, v6).
 PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)
-# v13: v7's network with 20 edge neighbours instead of 30 (geometry and descriptor work), its
-# three transformer pairs kept; every weight is v7's shape, so v7 warm-starts it whole.
-PRESETS["v13"] = PRESETS["v4"].replace(edge_neighbours=20)
