@@ -119,7 +119,6 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
     Heads-last is the fused kernel's own layout (:class:`_ExportedAttention`, whose inputs are
     the heads side by side), so the exported graphs reshape into it without transposing; torch's
     kernel reads the same tensors as (B, H, N, d) views."""
-    batch, count = query.shape[0], query.shape[1]
     if torch.onnx.is_in_onnx_export():
         return _ExportedAttention.apply(query.flatten(2), key.flatten(2), value.flatten(2), heads)
     query, key, value = query.transpose(1, 2), key.transpose(1, 2), value.transpose(1, 2)
@@ -133,7 +132,7 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: i
         attended = F.scaled_dot_product_attention(query, key, value, scale=1.0)[..., :value_width]
     else:
         attended = F.scaled_dot_product_attention(query, key, value, scale=1.0)
-    return attended.transpose(1, 2).reshape(batch, count, -1)
+    return merge_heads(attended)
 
 
 class _Update(nn.Module):
