@@ -274,7 +274,7 @@ def test_dataset_sample_tensors():
     shapes = np.stack([_shape(1024, seed) for seed in range(3)]).astype(np.float32)
     dataset = PairDataset(shapes, seed=9)
     sample = dataset[PairKey(0, 1, "partial", 1024)]
-    assert sample["src_edges"].shape == (768, 30, GeometryConfig().edge_channels) and sample["src_edges"].dtype == np.float32
+    assert sample["src_edges"].shape == (768, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels) and sample["src_edges"].dtype == np.float32
     assert sample["tgt_points"].shape == (768, 3) and sample["src_normals"].shape == (768, 3)
     np.testing.assert_allclose(np.linalg.norm(sample["src_normals"], axis=1), 1.0, atol=1e-5)
     # Network-frame pose and points agree with the user-frame ones via the stored normalisation.
@@ -296,7 +296,7 @@ def test_dataset_collates_into_a_batch():
     shapes = np.stack([_shape(1024, seed) for seed in range(4)]).astype(np.float32)
     keys = [[PairKey(0, i, "noisy", 128) for i in range(4)]]
     batch = next(iter(DataLoader(PairDataset(shapes), batch_sampler=keys)))
-    assert batch["src_edges"].shape == (4, 128, 30, GeometryConfig().edge_channels) and batch["src_edges"].dtype == torch.float32
+    assert batch["src_edges"].shape == (4, 128, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels) and batch["src_edges"].dtype == torch.float32
     assert batch["gt_match_src"].dtype == torch.int64 and batch["T_gt"].shape == (4, 4, 4)
     assert batch["protocol"] == ["noisy"] * 4
 
@@ -359,7 +359,7 @@ def test_real_shape_pairs(data_root):
             bound += MATCH_RADIUS_SPACINGS * _largest_spacing(shapes.val[2].astype(np.float64))
         assert residuals.max() <= bound
         expected = {"partial": 768, "resampled": 512, "resampled_partial": 384}.get(protocol, 1024)
-        assert sample["src_edges"].shape == (expected, 30, GeometryConfig().edge_channels)
+        assert sample["src_edges"].shape == (expected, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels)
 
 
 def test_scan_shapes_drawn_by_class_weight_deterministically():

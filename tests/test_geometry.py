@@ -173,9 +173,12 @@ def test_defaults_are_the_shipped_geometry_and_old_files_keep_the_papers():
     manifest = json.loads((Path(logdesc_rt.__file__).parent / "models" / "manifest.json").read_text())
     assert GeometryConfig() == GeometryConfig.from_stored(manifest["geometry"])  # the bundled model's
     # A geometry stored before the edge layouts existed (small-h100-v2's) is the paper's.
-    legacy = {key: value for key, value in GeometryConfig().to_dict().items() if key not in ("edge_layout", "normals")}
+    legacy = {key: value for key, value in PAPER_GEOMETRY.to_dict().items() if key not in ("edge_layout", "normals")}
     assert GeometryConfig.from_stored(legacy) == PAPER_GEOMETRY
     assert GeometryConfig.from_stored({**legacy, "edge_layout": "chiral"}).edge_layout == "chiral"
+    # ... and without its neighbour count too: the paper's 30, not the shipped default.
+    unsized = {key: value for key, value in legacy.items() if key != "umbrella_neighbours"}
+    assert GeometryConfig.from_stored(unsized).umbrella_neighbours == 30 != GeometryConfig().umbrella_neighbours
 
 
 # -- the compiled neighbourhoods against a brute-force reference --------------------------------
@@ -238,7 +241,7 @@ def test_geometry_neighbours_are_the_nearest_in_order():
     geometry = compute_geometry(points)
     squared = np.sum((points[:, None] - points[None]) ** 2, axis=2)
     np.fill_diagonal(squared, np.inf)
-    np.testing.assert_array_equal(geometry.neighbour_index, np.argsort(squared, axis=1)[:, :30])
+    np.testing.assert_array_equal(geometry.neighbour_index, np.argsort(squared, axis=1)[:, : GeometryConfig().umbrella_neighbours])
     sizes = geometry.pca.neighbour_count
     np.fill_diagonal(squared, 0.0)
     within = np.sum(np.sqrt(squared) < 0.3, axis=1)
@@ -273,7 +276,7 @@ def test_kernels_work_from_a_package_directory_that_cannot_be_written(tmp_path, 
         "from logdesc_rt.sampling import farthest_point_sampling\n"
         f"assert logdesc_rt.__file__.startswith({str(site)!r})\n"
         "points = np.random.default_rng(0).normal(size=(200, 3))\n"
-        "assert compute_geometry(points).edges.shape == (200, 30, 13)\n"
+        f"assert compute_geometry(points).edges.shape == (200, {GeometryConfig().umbrella_neighbours}, 13)\n"
         "assert len(set(farthest_point_sampling(points, 50).tolist())) == 50\n"
     )
     result = subprocess.run(
@@ -304,7 +307,8 @@ def test_the_kernels_cache_goes_to_the_user_directory_not_into_the_package(tmp_p
     script = (
         "import numpy as np\n"
         "from logdesc_rt import compute_geometry\n"
-        "assert compute_geometry(np.random.default_rng(0).normal(size=(200, 3))).edges.shape == (200, 30, 13)\n"
+        "edges = compute_geometry(np.random.default_rng(0).normal(size=(200, 3))).edges\n"
+        f"assert edges.shape == (200, {GeometryConfig().umbrella_neighbours}, 13)\n"
     )
     result = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True,
                             timeout=600)

@@ -218,7 +218,7 @@ def test_files_are_accepted(registrar, demo_pair, tmp_path):
     ("source", "error", "message"),
     [
         (np.full((100, 3), np.nan), NonFinitePointsError, "source"),
-        (np.random.default_rng(0).normal(size=(10, 3)), TooFewPointsError, "at least 31"),
+        (np.random.default_rng(0).normal(size=(10, 3)), TooFewPointsError, "at least 21"),
         ("/nonexistent/cloud.ply", PointCloudFileError, "nonexistent"),
     ],
 )

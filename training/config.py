@@ -75,7 +75,7 @@ class ModelConfig(_DictMixin):
 
     Geometry read by the invariant network:
         edge_neighbours: k, each point's nearest neighbours in its (N, k, C) edge tensor (the
-            geometry's ``umbrella_neighbours``; 30 for v3 and v4). The edge convolutions' cost
+            geometry's ``umbrella_neighbours``; 30 for v3 and v4, 20 for v13). The edge convolutions' cost
             grows with it, and their weights do not depend on it.
 
     Architecture:
@@ -102,7 +102,7 @@ class ModelConfig(_DictMixin):
     sinkhorn_iterations: int = 50
     dustbin_init: float = 1.0
     architecture: str = "logdesc"
-    edge_neighbours: int = GeometryConfig.umbrella_neighbours
+    edge_neighbours: int = PAPER_GEOMETRY.umbrella_neighbours
 
     def __post_init__(self) -> None:
         # JSON turns tuples into lists; a frozen dataclass must hold a hashable tuple.
@@ -112,7 +112,7 @@ class ModelConfig(_DictMixin):
         name = type(self).__name__
         if self.edge_neighbours < 3:
             raise ValueError(f"{name}.edge_neighbours must be >= 3, got {self.edge_neighbours}")
-        if self.architecture != "invariant" and self.edge_neighbours != GeometryConfig.umbrella_neighbours:
+        if self.architecture != "invariant" and self.edge_neighbours != PAPER_GEOMETRY.umbrella_neighbours:
             raise ValueError(f"{name}.edge_neighbours: the paper's network reads the paper's geometry (k = 30)")
         if self.edge_channels < 1:
             raise ValueError(f"{name}.edge_channels must be >= 1, got {self.edge_channels}")
@@ -295,3 +295,7 @@ PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
 # it (--init-from: every weight it has is shaped as v5's; the first layers are copied).
 # Trained and not shipped (docs: decisions, v6).
 PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)
+# v13: v7's network with 20 edge neighbours instead of 30 (the geometry's neighbourhoods and the
+# descriptor's edge convolutions), its three transformer pairs kept; every weight is v7's shape,
+# so v7 warm-starts it whole. v15, the bundled model, is this preset trained for three cycles.
+PRESETS["v13"] = PRESETS["v4"].replace(edge_neighbours=20)
