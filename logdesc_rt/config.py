@@ -68,7 +68,7 @@ class GeometryConfig(_DictMixin):
     pca_radius: float = 0.3
     pca_max_neighbours: int = 128
     pca_min_neighbours: int = 8
-    # The defaults are the shipped model's (v15): 20 umbrella / edge neighbours (the paper's 30
+    # The defaults are the bundled model's: 20 umbrella / edge neighbours (the paper's 30
     # cost the descriptor about a quarter more time), chiral edges (v3's invariant ones and two
     # that change sign under a reflection) on PCA normals.
     umbrella_neighbours: int = 20
@@ -305,34 +305,34 @@ class VerificationConfig(_DictMixin):
     # on validation pairs (benchmarks/results/success_calibration.{md,json} say on what and how
     # well); a model exported without a calibration gets them.
     weights: tuple[float, ...] = (
-        0.30246258009255794,
-        2.110247526945087,
-        -7.305924014122631,
-        0.8820474235957505,
-        2.239254296930791,
-        4.572474297957569,
-        -1.454900482733929,
-        0.9878456088042938,
-        2.0702261618693805,
-        -1.1383073534632613,
+        0.29030458126252257,
+        2.0759511475710997,
+        -7.72893913351615,
+        0.7789847902886062,
+        2.338426508563753,
+        4.421035133029792,
+        -1.4109939471758348,
+        1.0979349467725652,
+        2.2577199393805687,
+        -1.1777597470622283,
     )
-    bias: float = -0.2558711054842877
-    success_threshold: float = 0.6178
+    bias: float = -0.006777752737214371
+    success_threshold: float = 0.6374
     seed: int = 0
     candidates: tuple[str, ...] = ("fsr", "ransac", "svd", "top_k", "core")
     exit_estimator: str = "fsr"
     exit_weights: tuple[float, ...] = (
-        0.36431646804898365,
-        2.712263443380151,
-        -7.94682756110449,
-        0.8944516911998959,
-        2.054570189488727,
-        4.846909280102772,
-        -0.7059546668620971,
-        -1.263224044286056,
+        0.41448248662254983,
+        2.8427933193113333,
+        -7.806858068770783,
+        0.720086674214041,
+        3.1607671869316425,
+        4.850229111661629,
+        -0.20085398826203418,
+        -1.5024416162771945,
     )
-    exit_bias: float = -0.11178246184954999
-    exit_threshold: float = 0.7515
+    exit_bias: float = -1.3384458192176059
+    exit_threshold: float = 0.7913
 
     @property
     def fast_exit(self) -> bool:
@@ -525,7 +525,7 @@ class RansacConfig(_DictMixin):
 
 
 SUBSAMPLING_METHODS = ("fps", "voxel")
-DEFAULT_WORKING_SIZE = 384
+DEFAULT_WORKING_SIZE = 320
 """The bundled model's working size (points per cloud its networks see), for code that has no
 model at hand (the CLI reads its inputs before loading one; a checkpoint without the value);
 tests hold it equal to the bundled manifest's."""
@@ -538,8 +538,9 @@ class SubsamplingConfig(_DictMixin):
 
     Attributes:
         max_points: working size per cloud; 0 leaves it to the model: its manifest's
-            ``runtime.subsampling.max_points``, else the size it was exported at (1024 for the
-            bundled model). Larger clouds are subsampled to it; memory grows with its square.
+            ``runtime.subsampling.max_points``, else the size it was exported at (for the
+            bundled model ``DEFAULT_WORKING_SIZE``). Larger clouds are subsampled to it; memory
+            grows with its square.
         method: "fps" (farthest-point sampling) or "voxel" (a grid sized to keep about
             ``max_points``, then farthest-point sampling to the exact count).
     """

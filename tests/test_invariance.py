@@ -311,12 +311,12 @@ def test_the_bundled_model_registers_a_clean_shape_at_any_relative_rotation(bund
 
 
 def _assert_the_bundled_model_tells_apart_from_its_mirror_image(
-    bundled_registrar, shape: np.ndarray, share: float
+    bundled_registrar, shape: np.ndarray, share: float, distance: float = 1e-3
 ) -> None:
     if bundled_registrar.manifest.geometry.edge_layout != "chiral":
         pytest.skip("the bundled model reads no chiral channel: mirror-blind by construction")
     # At the model's working size: the points the network sees (the same indices in the mirror).
-    assert np.mean(_mirror_distance(bundled_registrar, shape) > 1e-3) > share
+    assert np.mean(_mirror_distance(bundled_registrar, shape) > distance) > share
 
 
 def test_the_bundled_model_tells_a_shape_from_its_mirror_image(bundled_registrar):
@@ -327,8 +327,10 @@ def test_the_bundled_model_tells_a_shape_from_its_mirror_image(bundled_registrar
 
 
 def test_the_bundled_model_tells_a_chair_from_its_mirror_image(bundled_registrar, shared_data):
-    """The same on a ModelNet10 test chair, at a fifth of its points: a chair is nearly symmetric
-    left to right, so near its plane of symmetry a point and its mirror image look alike, and the
-    bar is lower than on the twisted bar. A reflection-blind model (v3's channels alone) gives
-    identical descriptors at every point."""
-    _assert_the_bundled_model_tells_apart_from_its_mirror_image(bundled_registrar, _real_shape(shared_data), 0.2)
+    """The same on a ModelNet10 test chair: a chair is nearly symmetric left to right, so a point
+    and its mirror image look alike and their descriptors differ less than on the twisted bar.
+    A reflection-blind model (v3's channels alone) gives identical descriptors at every point
+    (1 - cosine < 1e-6); the bundled model's differ by more than 2e-4 at most points."""
+    _assert_the_bundled_model_tells_apart_from_its_mirror_image(
+        bundled_registrar, _real_shape(shared_data), 0.5, distance=2e-4
+    )

@@ -297,5 +297,6 @@ PRESETS["v4_one_pair"] = PRESETS["v4"].replace(transformer_layers=1)
 PRESETS["v6"] = PRESETS["v4"].replace(descriptor_attention_layers=1, transformer_layers=2)
 # v13: v7's network with 20 edge neighbours instead of 30 (the geometry's neighbourhoods and the
 # descriptor's edge convolutions), its three transformer pairs kept; every weight is v7's shape,
-# so v7 warm-starts it whole. v15, the bundled model, is this preset trained for three cycles.
+# so v7 warm-starts it whole. The bundled model (v19) is this preset: three cycles at 384 points
+# from v7 (v15), then four at 320 points.
 PRESETS["v13"] = PRESETS["v4"].replace(edge_neighbours=20)
