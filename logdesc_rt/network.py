@@ -11,7 +11,7 @@ A model directory holds
                             half the operator calls, ~8 % less time at the working size
 
 Which optional inputs a graph takes depends on the model's architecture (the paper's network,
-or v3's invariant one); the runtime feeds each graph by input name.
+or the invariant one); the runtime feeds each graph by input name.
 
 ``export/to_onnx.py`` writes it. The manifest (mirrored in each ONNX file's metadata) carries
 everything the runtime must reproduce from training: the geometry, normalisation and matching
@@ -273,8 +273,9 @@ class OnnxNetwork:
         # 557 / 1980 / ~7640 MiB with it, 297 / 1201 / 4936 MiB without (benchmarks/latency.py).
         options.enable_mem_pattern = False
         # Denormal floats. Attention logits ~90 below their row's maximum give softmax terms in
-        # float32's denormal range, which x86 cores process ~100x slower; v4's distance-biased
-        # heads have ~5 % such entries (one attention node: 27 ms with them, 6 ms flushed).
+        # float32's denormal range, which x86 cores process ~100x slower; the invariant network's
+        # distance-biased heads had ~5 % such entries in a measured model (one attention node: 27
+        # ms with them, 6 ms flushed).
         # Flushing them to zero (FTZ/DAZ) changes no value above 1e-38. onnxruntime sets the mode on each
         # session's pool threads, and once per process (the first session only) on the thread
         # that creates it; so every session is created and run on this module's own threads
@@ -295,7 +296,8 @@ class OnnxNetwork:
         Args:
             edges: (N, k, C) float32 edge features (network units).
             points: (N, 3) positions, network units.
-            normals: (N, 3) unit normals (read by models whose descriptor uses them, v3).
+            normals: (N, 3) unit normals (read by models whose descriptor uses them: the
+                invariant architecture).
 
         Returns:
             (N, d) float32 unit-norm descriptors.
@@ -350,9 +352,9 @@ class OnnxNetwork:
     ) -> np.ndarray:
         """(N, M) float32 scores <f_i, h_j> / sqrt(d) after the transformer.
 
-        Positions (network units) are read by models whose transformer uses them (v3). Two
-        clouds of one size go through the model's same-size graph where it has one
-        (``SAME_SIZE_MATCHER_FILE``), created at its first use.
+        Positions (network units) are read by models whose transformer uses them (the invariant
+        architecture). Two clouds of one size go through the model's same-size graph where it
+        has one (``SAME_SIZE_MATCHER_FILE``), created at its first use.
         """
         arrays = {
             "descriptors_source": source_descriptors,
