@@ -11,8 +11,9 @@ pose estimators on logdesc-rt's matches see the same matches:
   same matches (:meth:`logdesc_rt.Registrar.register_matches`): the fast exit, or every
   candidate pose verified on the full clouds, the best kept, and the success flag; without and
   with point-to-plane ICP; ``logdesc_thorough``: ``register(..., thorough=True)``, every
-  candidate verified on every pair. Their records carry the flag (``flagged_success``,
-  ``confidence``);
+  candidate verified on every pair; ``logdesc_first_draw``: ``register()`` without the second
+  draw (``SubsamplingConfig.second_draw=False``). Their records carry the flag
+  (``flagged_success``, ``confidence``);
 - ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
   MVP-RG table does;
@@ -46,6 +47,7 @@ descriptor-only methods the geometry + descriptor network time plus the Open3D e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -64,11 +66,12 @@ from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
-# method -> register()'s (refine, thorough)
+# method -> register()'s (refine, thorough, second draw)
 VERIFIED_METHODS = {
-    "logdesc_auto": (None, False),
-    "logdesc_auto_icp": ("point_to_plane", False),
-    "logdesc_thorough": (None, True),
+    "logdesc_auto": (None, False, True),
+    "logdesc_auto_icp": ("point_to_plane", False, True),
+    "logdesc_thorough": (None, True, True),
+    "logdesc_first_draw": (None, False, False),
 }
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
@@ -375,9 +378,9 @@ class MethodRunner:
                 results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
         if "logdesc_fsr_icp" in self.methods:
             results["logdesc_fsr_icp"] = self._refined(source, target, results["logdesc_fsr"], pair.normalization.scale)
-        for name, (refine, thorough) in VERIFIED_METHODS.items():
+        for name, (refine, thorough, second_draw) in VERIFIED_METHODS.items():
             if name in self.methods:
-                results[name] = self._verified(pair, refine, thorough, seed, match_seconds, pred_match)
+                results[name] = self._verified(pair, refine, thorough, second_draw, seed, match_seconds, pred_match)
         if any(m in self.methods for m in DESCRIPTOR_METHODS):
             describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
             results.update(
@@ -395,9 +398,13 @@ class MethodRunner:
             )
         return results
 
-    def _verified(self, pair, refine, thorough, seed, match_seconds, pred_match) -> MethodResult:
+    def _verified(self, pair, refine, thorough, second_draw, seed, match_seconds, pred_match) -> MethodResult:
         """register()'s pipeline from the matches: verified candidates, the flag (``thorough``:
-        every candidate verified, no fast exit)."""
+        every candidate verified, no fast exit; ``second_draw``: the pair matched again on other
+        working subsets when the flag does not claim the first result)."""
+        if second_draw != pair.config.subsampling.second_draw:
+            subsampling = dataclasses.replace(pair.config.subsampling, second_draw=second_draw)
+            pair = dataclasses.replace(pair, config=dataclasses.replace(pair.config, subsampling=subsampling))
         start = time.perf_counter()
         result = self.registrar.register_matches(pair, refine=refine, seed=seed, thorough=thorough)  # a failure is a result
         seconds = match_seconds + time.perf_counter() - start

@@ -12,6 +12,8 @@
          scored, the best kept; a calibrated confidence and the success flag
       -> optional ICP refinement on the full clouds; fitness / inlier RMSE against the full
          target, over a bounded seeded subset of the source
+      -> if the success flag does not claim the result: the same again on working subsets drawn
+         by the other subsampling method (the second draw), the more confident result kept
 
 Every parameter of these stages is in one :class:`~logdesc_rt.config.RuntimeConfig`.
 
@@ -31,12 +33,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import time
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from .config import REFINEMENT_METHODS, RefinementConfig, RuntimeConfig, SubsamplingConfig
+from .config import REFINEMENT_METHODS, SUBSAMPLING_METHODS, RefinementConfig, RuntimeConfig, SubsamplingConfig
 from .config_resolution import UNSET, ConfigResolver
 from .geometry import compute_geometry
 from .io import input_points
@@ -151,6 +154,11 @@ class Registrar:
             thorough: True verifies every candidate pose, also when the fast exit is sure of
                 the first one (:mod:`logdesc_rt.verification`): slower, for a second opinion.
 
+        When the success flag does not claim the result, the pair is matched and registered
+        again on working subsets drawn by the other subsampling method, and the more confident
+        result is returned (``SubsamplingConfig.second_draw``, on by default; its time is
+        ``timings["second_draw"]``, and ``result.draws`` says how many draws ran).
+
         Returns:
             :class:`RegistrationResult`; check ``success`` (or ``confidence``) before using it.
 
@@ -173,8 +181,8 @@ class Registrar:
         initial = None if init is None else check_rigid_transformation(init, name="init")
         report = progress if progress is not None else (lambda message: None)
         report("matching: geometry, networks and Sinkhorn on the working subsets")
-        pair = self._with_config(config).match(source, target)
-        return register_matched(pair, config, initial, report)
+        registrar = self._with_config(config)
+        return registrar._registered(registrar.match(source, target), config, initial, report)
 
     def register_matches(
         self,
@@ -189,7 +197,8 @@ class Registrar:
         thorough: bool | None = None,
     ) -> RegistrationResult:
         """:meth:`register` from a pair already matched (:meth:`match`), without running the
-        networks again: candidate poses, verification, the success flag, optional ICP.
+        networks on its working subsets again: candidate poses, verification, the success
+        flag, optional ICP, and the second draw if the flag does not claim the result.
 
         The keyword arguments are :meth:`register`'s and apply over the configuration the
         pair was matched with (``pair.config``). ``register(s, t, **kw)`` equals
@@ -204,7 +213,8 @@ class Registrar:
             thorough=thorough,
         )
         initial = None if init is None else check_rigid_transformation(init, name="init")
-        return register_matched(pair, config, initial, progress)
+        report = progress if progress is not None else (lambda message: None)
+        return self._with_config(config)._registered(pair, config, initial, report)
 
     def call_config(
         self,
@@ -234,7 +244,10 @@ class Registrar:
         another estimator (``benchmarks/`` does both). Takes the same clouds as
         :meth:`register`; never raises for too few matches (check ``len(result.matches)``).
         """
-        prepared = self.prepare(source, target)
+        return self._match_prepared(self.prepare(source, target))
+
+    def _match_prepared(self, prepared: PreparedPair) -> PairMatches:
+        """:meth:`match` from the prepared pair: the networks and Sinkhorn."""
         timings = dict(prepared.timings)
         network_source, network_target = prepared.source_network, prepared.target_network
         with timed(timings, "descriptors"):
@@ -284,11 +297,29 @@ class Registrar:
             return self._prepare_loaded(source_points, target_points, timings)
 
     def _prepare_loaded(self, source_points: np.ndarray, target_points: np.ndarray, timings: dict) -> PreparedPair:
-        with timed(timings, "subsample"):  # the working subsets, and the pair's map to network units
+        subsets = self._working_subsets(source_points, target_points, timings)
+        return self._prepared(source_points, target_points, subsets, timings)
+
+    def _working_subsets(
+        self, source_points: np.ndarray, target_points: np.ndarray, timings: dict
+    ) -> tuple[np.ndarray, np.ndarray, PairNormalization]:
+        """Each cloud's working subset (indices) and the pair's map to network units."""
+        with timed(timings, "subsample"):
             (source_index, *source_extent), (target_index, *target_extent) = per_cloud(
                 self._working_subset_and_extent, (source_points,), (target_points,)
             )
             normalization = PairNormalization.from_extents(*source_extent, *target_extent, self.manifest.normalization)
+        return source_index, target_index, normalization
+
+    def _prepared(
+        self,
+        source_points: np.ndarray,
+        target_points: np.ndarray,
+        subsets: tuple[np.ndarray, np.ndarray, PairNormalization],
+        timings: dict,
+    ) -> PreparedPair:
+        """The prepared pair of given working subsets: their network-unit points and geometry."""
+        source_index, target_index, normalization = subsets
         network_source = normalization.source_to_network(source_points[source_index])
         network_target = normalization.target_to_network(target_points[target_index])
         with timed(timings, "geometry"):
@@ -322,6 +353,40 @@ class Registrar:
         return Descriptors(indices=index, descriptors=descriptors, normals=geometry.normals)
 
     # -- helpers ----------------------------------------------------------------------------
+
+    def _registered(
+        self, pair: PairMatches, config: RuntimeConfig, initial: np.ndarray | None, report: Callable[[str], None]
+    ) -> RegistrationResult:
+        """The result of a matched pair (:func:`register_matched`), and, when the flag does not
+        claim it, the second draw (:attr:`SubsamplingConfig.second_draw`): the same pipeline on
+        working subsets of the other subsampling method, the more confident result kept.
+
+        The returned timings are the first draw's stages plus ``second_draw``, the second
+        draw's whole time (its subsets, geometry, networks, poses and verification)."""
+        first = register_matched(pair, config, initial, report)
+        if first.success or not config.subsampling.second_draw:
+            return first
+        started = time.perf_counter()
+        other_method = next(method for method in SUBSAMPLING_METHODS if method != config.subsampling.method)
+        second_config = dataclasses.replace(
+            config, subsampling=dataclasses.replace(config.subsampling, method=other_method)
+        )
+        other = self._with_config(second_config)
+        timings: dict[str, float] = {}
+        with one_thread_per_caller():
+            subsets = other._working_subsets(pair.source_points, pair.target_points, timings)
+            same = np.array_equal(subsets[0], pair.source_index) and np.array_equal(subsets[1], pair.target_index)
+            if not same:
+                report(f"matching again on {other_method} working subsets: the flag did not claim the first result")
+                prepared = other._prepared(pair.source_points, pair.target_points, subsets, timings)
+        if same:  # both clouds are their whole working subsets: a second draw would repeat the first
+            return first
+        second = register_matched(other._match_prepared(prepared), second_config, initial, report)
+        kept = second if second.confidence > first.confidence else first
+        stages = {stage: seconds for stage, seconds in first.timings.items() if stage != "total"}
+        stages["second_draw"] = time.perf_counter() - started
+        stages["total"] = sum(stages.values())
+        return dataclasses.replace(kept, timings=stages, draws=2)
 
     def _with_config(self, config: RuntimeConfig) -> "Registrar":
         """This Registrar, or a shallow copy sharing its network when ``config`` changes the

@@ -55,7 +55,11 @@ class RegistrationResult:
             than the working size, or stray points set aside).
         source_points_used, target_points_used: points the network saw per cloud.
         timings: stage name -> seconds: those of :class:`PairMatches`, then pose,
-            refinement (if any), evaluation, and total (their sum).
+            refinement (if any), evaluation, second_draw (if it ran: its whole time) and
+            total (their sum).
+        draws: 1, or 2 when the flag did not claim the first result and the pair was matched
+            again on working subsets of the other subsampling method
+            (``SubsamplingConfig.second_draw``); ``config.subsampling.method`` is the kept one's.
         reason: None for a success; otherwise why not, in words (too few matches, no
             candidate pose, or a confidence below the threshold). A pair that could not be
             registered at all returns the identity (``pose_estimator`` "none") with fitness
@@ -82,6 +86,7 @@ class RegistrationResult:
     config: RuntimeConfig | None = None
     reason: str | None = None
     fitness_points: int = 0
+    draws: int = 1
 
     @property
     def rotation(self) -> np.ndarray:
@@ -147,6 +152,7 @@ class RegistrationResult:
             "source_points_used": self.source_points_used,
             "target_points_used": self.target_points_used,
             "timings_s": self.timings,
+            "draws": self.draws,
             "config": None if self.config is None else self.config.to_dict(),
         }
 
