@@ -11,8 +11,8 @@ pose estimators on logdesc-rt's matches see the same matches:
   same matches (:meth:`logdesc_rt.Registrar.register_matches`): the fast exit, or every
   candidate pose verified on the full clouds, the best kept, and the success flag; without and
   with point-to-plane ICP; ``logdesc_thorough``: ``register(..., thorough=True)``, every
-  candidate verified on every pair; ``logdesc_first_draw``: ``register()`` without the second
-  draw (``SubsamplingConfig.second_draw=False``). Their records carry the flag
+  candidate verified on every pair; ``logdesc_second_draw``: ``register()`` with the second
+  draw (``SubsamplingConfig.second_draw``). Their records carry the flag
   (``flagged_success``, ``confidence``);
 - ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
@@ -66,12 +66,12 @@ from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
-# method -> register()'s (refine, thorough, second draw)
+# method -> register()'s (refine, thorough, second draw; None: the configuration's)
 VERIFIED_METHODS = {
-    "logdesc_auto": (None, False, True),
-    "logdesc_auto_icp": ("point_to_plane", False, True),
-    "logdesc_thorough": (None, True, True),
-    "logdesc_first_draw": (None, False, False),
+    "logdesc_auto": (None, False, None),
+    "logdesc_auto_icp": ("point_to_plane", False, None),
+    "logdesc_thorough": (None, True, None),
+    "logdesc_second_draw": (None, False, True),
 }
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
@@ -402,7 +402,7 @@ class MethodRunner:
         """register()'s pipeline from the matches: verified candidates, the flag (``thorough``:
         every candidate verified, no fast exit; ``second_draw``: the pair matched again on other
         working subsets when the flag does not claim the first result)."""
-        if second_draw != pair.config.subsampling.second_draw:
+        if second_draw is not None and second_draw != pair.config.subsampling.second_draw:
             subsampling = dataclasses.replace(pair.config.subsampling, second_draw=second_draw)
             pair = dataclasses.replace(pair, config=dataclasses.replace(pair.config, subsampling=subsampling))
         start = time.perf_counter()

@@ -12,8 +12,9 @@
          scored, the best kept; a calibrated confidence and the success flag
       -> optional ICP refinement on the full clouds; fitness / inlier RMSE against the full
          target, over a bounded seeded subset of the source
-      -> if the success flag does not claim the result: the same again on working subsets drawn
-         by the other subsampling method (the second draw), the more confident result kept
+      -> optionally, if the success flag does not claim the result: the same again on working
+         subsets drawn by the other subsampling method (the second draw), the more confident
+         result kept
 
 Every parameter of these stages is in one :class:`~logdesc_rt.config.RuntimeConfig`.
 
@@ -154,10 +155,11 @@ class Registrar:
             thorough: True verifies every candidate pose, also when the fast exit is sure of
                 the first one (:mod:`logdesc_rt.verification`): slower, for a second opinion.
 
-        When the success flag does not claim the result, the pair is matched and registered
-        again on working subsets drawn by the other subsampling method, and the more confident
-        result is returned (``SubsamplingConfig.second_draw``, on by default; its time is
-        ``timings["second_draw"]``, and ``result.draws`` says how many draws ran).
+        With ``config={"subsampling": {"second_draw": True}}``, a result the success flag does
+        not claim is followed by a second draw: the pair matched and registered again on working
+        subsets of the other subsampling method, the more confident result returned
+        (:class:`~logdesc_rt.config.SubsamplingConfig`; its time is ``timings["second_draw"]``,
+        and ``result.draws`` says how many draws ran).
 
         Returns:
             :class:`RegistrationResult`; check ``success`` (or ``confidence``) before using it.
@@ -198,7 +200,7 @@ class Registrar:
     ) -> RegistrationResult:
         """:meth:`register` from a pair already matched (:meth:`match`), without running the
         networks on its working subsets again: candidate poses, verification, the success
-        flag, optional ICP, and the second draw if the flag does not claim the result.
+        flag, optional ICP, and the second draw if the configuration asks for it.
 
         The keyword arguments are :meth:`register`'s and apply over the configuration the
         pair was matched with (``pair.config``). ``register(s, t, **kw)`` equals

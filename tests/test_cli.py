@@ -178,6 +178,21 @@ def test_json_reports_success_confidence_and_config(cloud_files, tmp_path):
     assert refused.returncode == 2 and "tau" in refused.stderr and STARTED not in refused.stderr
 
 
+def test_second_draw_flag_sets_the_config_over_the_file(cloud_files, tmp_path):
+    """--second-draw turns SubsamplingConfig.second_draw on, beside a --config file's settings."""
+    folder, _ = cloud_files
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"subsampling": {"method": "voxel"}}))
+    completed = run_cli("register", str(folder / "source.ply"), str(folder / "target.pcd"), "--json",
+                        "--config", str(config), "--second-draw")
+    assert completed.returncode == 0, completed.stderr
+    result = json.loads(completed.stdout)
+    assert result["config"]["subsampling"]["second_draw"] is True
+    assert result["draws"] == (1 if result["success"] else 2)
+    plain = json.loads(run_cli("register", str(folder / "source.ply"), str(folder / "target.pcd"), "--json").stdout)
+    assert plain["config"]["subsampling"]["second_draw"] is False and plain["draws"] == 1
+
+
 def test_init_file_joins_the_candidates(cloud_files, tmp_path):
     folder, pair = cloud_files
     init = tmp_path / "init.json"

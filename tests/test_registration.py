@@ -120,26 +120,27 @@ def _resampled_partial_pair(seed: int):
                      any_orientation=True, any_relative_rotation=True)
 
 
-FIRST_DRAW_ONLY = {"subsampling": {"second_draw": False}}
-VOXEL_DRAW_ONLY = {"subsampling": {"second_draw": False, "method": "voxel"}}
+SECOND_DRAW = {"subsampling": {"second_draw": True}}
+VOXEL_DRAW_ONLY = {"subsampling": {"method": "voxel"}}
 
 
 def test_a_claimed_pair_is_drawn_once(registrar, demo_pair):
-    result = registrar.register(demo_pair.source, demo_pair.target)
+    result = registrar.register(demo_pair.source, demo_pair.target, config=SECOND_DRAW)
     assert result.success and result.draws == 1 and "second_draw" not in result.timings
 
 
 @pytest.mark.parametrize("seed", [24, 2])
 def test_the_second_draw_keeps_the_more_confident_result(registrar, seed):
-    """Unclaimed by the first (farthest-point) draw, the pair is matched again on voxel working
-    subsets and the more confident result returned, exactly as each draw alone gives it.
+    """With the second draw asked for, a pair unclaimed by the first (farthest-point) draw is
+    matched again on voxel working subsets and the more confident result returned, exactly as
+    each draw alone gives it; the default draws once.
     Seed 24 (found with the bundled model): the first draw's pose is right but unverified
     (confidence 0), the voxel draw's is right and claimed. Seed 2: neither is claimed and the
     first is the more confident, so it stays."""
     pair = _resampled_partial_pair(seed)
-    first = registrar.register(pair.source, pair.target, config=FIRST_DRAW_ONLY)
+    first = registrar.register(pair.source, pair.target)
     voxel = registrar.register(pair.source, pair.target, config=VOXEL_DRAW_ONLY)
-    both = registrar.register(pair.source, pair.target)
+    both = registrar.register(pair.source, pair.target, config=SECOND_DRAW)
     assert not first.success and first.draws == 1
     assert both.draws == 2
     kept = voxel if voxel.confidence > first.confidence else first
@@ -151,9 +152,10 @@ def test_the_second_draw_keeps_the_more_confident_result(registrar, seed):
     if seed == 24:
         assert both.success and both.config.subsampling.method == "voxel"
         assert rotation_error_deg(both.rotation, pair.T_gt[:3, :3]) < 5.0
-    again = registrar.register(pair.source, pair.target)
+    again = registrar.register(pair.source, pair.target, config=SECOND_DRAW)
     assert np.array_equal(again.transformation, both.transformation) and again.confidence == both.confidence
-    finished = registrar.register_matches(registrar.match(pair.source, pair.target))
+    drawing = Registrar(config=SECOND_DRAW)  # register_matches applies its options over the pair's config
+    finished = drawing.register_matches(drawing.match(pair.source, pair.target))
     assert np.array_equal(finished.transformation, both.transformation) and finished.draws == 2
 
 
@@ -162,7 +164,7 @@ def test_no_second_draw_when_both_draws_would_be_the_same_points(registrar, demo
     from .shapes import twisted_bar
 
     small = demo_pair.source[: registrar.max_points - 20]
-    result = registrar.register(small, twisted_bar(registrar.max_points - 20))
+    result = registrar.register(small, twisted_bar(registrar.max_points - 20), config=SECOND_DRAW)
     assert not result.success and result.draws == 1 and "second_draw" not in result.timings
 
 

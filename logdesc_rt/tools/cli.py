@@ -197,8 +197,17 @@ def _read_init(path: Path) -> np.ndarray:
 
 
 def _runtime_config(args) -> dict:
-    """--config FILE's partial RuntimeConfig dict ({} without it), checked before any work;
-    the Registrar applies it over the model's defaults (its manifest's "runtime")."""
+    """--config FILE's partial RuntimeConfig dict ({} without it) with --second-draw applied,
+    checked before any work; the Registrar applies it over the model's defaults (its
+    manifest's "runtime")."""
+    values = _config_file(args)
+    if getattr(args, "second_draw", False):
+        values.setdefault("subsampling", {})["second_draw"] = True
+    return values
+
+
+def _config_file(args) -> dict:
+    """--config FILE's partial RuntimeConfig dict, checked ({} without it)."""
     from ..config import RuntimeConfig
 
     if getattr(args, "config", None) is None:
@@ -653,8 +662,8 @@ def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) 
     if threads:
         parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--max-points", type=int, default=None,
-                        help="working size per cloud for the networks (default: the model's, 1024); larger "
-                             "clouds are subsampled; memory grows with its square")
+                        help="working size per cloud for the networks (default: the model's, 320 for the "
+                             "bundled one); larger clouds are subsampled; memory grows with its square")
 
 
 def _add_registration_options(parser: argparse.ArgumentParser) -> None:
@@ -668,6 +677,10 @@ def _add_registration_options(parser: argparse.ArgumentParser) -> None:
                              "same output (default 0)")
     parser.add_argument("--subsampling", choices=("fps", "voxel"), default=None,
                         help="how clouds above the working size are reduced (default fps: farthest-point)")
+    parser.add_argument("--second-draw", action="store_true",
+                        help="when the success flag does not claim the result, match the pair again on working "
+                             "subsets of the other subsampling method and keep the more confident result (more "
+                             "pairs registered; up to twice the time of the pairs the flag does not claim)")
     parser.add_argument("--config", type=Path, default=None, metavar="FILE.json",
                         help="runtime configuration (JSON, any subset of the 'config' object --json prints), "
                              "applied over the model's defaults (its manifest's \"runtime\"); the flags above "
