@@ -28,7 +28,7 @@ Features of a pose T (all lengths relative to the pair's scale s, the larger clo
   10-neighbour PCA of each subset), 0 without inliers: wrong poses cross surfaces;
 - ``match_inlier_ratio``: confidence-weighted share of the learned matches that T maps within
   ``match_tolerance * s`` of their partner;
-- ``log_matches``: log(1 + number of mutual matches) / log(1 + 1024), the working size;
+- ``log_matches``: log(1 + number of mutual matches) / log(1 + 1024) (a fixed scale);
 - ``agreement``: share of the candidate estimators (``VerificationConfig.candidates``; a user's
   initial guess does not count) whose pose is this hypothesis;
 - ``margin``: fitness of this hypothesis minus that of the best other distinct hypothesis,

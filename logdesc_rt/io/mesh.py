@@ -41,9 +41,9 @@ FACE_SUFFIXES: tuple[str, ...] = (".ply", ".off")
 MESH_WRITE_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".stl", ".off", ".glb")
 """Suffixes :meth:`Mesh.write` writes (vertices and triangles)."""
 DEFAULT_SURFACE_SAMPLES = 5000
-"""Points sampled on a mesh's surface by default: about 5x the working size (1024), so the
-working subset's farthest-point sampling picks from an even, dense cover (the paper's femur
-case samples 5,000 points from its CAD model)."""
+"""Points sampled on a mesh's surface by default: several times any working size the bundled
+model is run at (320 by default), so the working subset's farthest-point sampling picks from an
+even, dense cover (the paper's femur case samples 5,000 points from its CAD model)."""
 UNEVEN_TOP_VERTICES = 0.05
 UNEVEN_AREA_SHARE = 0.25
 """A mesh's vertices are too uneven to stand for its surface when the 5 % of vertices that

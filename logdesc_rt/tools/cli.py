@@ -57,9 +57,11 @@ LAS/LAZ and E57 with the optional extras: pip install "logdesc-rt[las]" / "logde
 meshes: OBJ, STL, GLB/glTF, PLY/OFF with faces (pip install "logdesc-rt[mesh]"), sampled on
 their surface; --write-aligned OUT.ply/.obj/.stl/.off/.glb writes the moved mesh with its faces.
 
-working size: clouds larger than the model's training size (1024 points) are subsampled to it
-(farthest-point sampling) for the networks; verification, ICP, fitness and --write-aligned use
-the full clouds. The networks' memory grows with the working size (about 0.1 GB at 1024).
+working size: clouds larger than the model's working size (320 points for the bundled model)
+are subsampled to it (farthest-point sampling) for the networks; verification, ICP, fitness and
+--write-aligned use the full clouds. The networks' memory grows with the square of the working
+size (--max-points). --second-draw matches a pair the success flag does not claim again on
+voxel working subsets and keeps the more confident result.
 
 success: the pose was verified on the full clouds and the calibrated confidence reached its
 threshold (calibrated on validation pairs to be right, i.e. rotation error < 5 degrees and
