@@ -103,8 +103,10 @@ def test_version_and_help_say_what_a_user_needs():
     completed = run_cli("--version")
     assert completed.returncode == 0 and completed.stdout.strip().startswith("logdesc-rt 0.")
     help_text = run_cli("register", "--help").stdout
-    for needed in (".ply", ".pcd", ".xyz", ".npy", ".off", "auto", "ransac", "1024", "success", "--allow-failure",
-                   "exit codes", "--init", "--config", "matplotlib"):
+    from logdesc_rt.config import DEFAULT_WORKING_SIZE
+
+    for needed in (".ply", ".pcd", ".xyz", ".npy", ".off", "auto", "ransac", f"{DEFAULT_WORKING_SIZE} points", "success",
+                   "--allow-failure", "exit codes", "--init", "--config", "--second-draw", "matplotlib"):
         assert needed in help_text, needed
 
 

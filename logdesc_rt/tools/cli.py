@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import POSE_ESTIMATORS, REFINEMENT_METHODS
+from ..config import DEFAULT_WORKING_SIZE, POSE_ESTIMATORS, REFINEMENT_METHODS
 from ..errors import LogdescError
 from ..metrics import rotation_error_deg
 
@@ -51,17 +51,17 @@ VIEW_HELP = ("write an interactive 3D page (one self-contained HTML file, opens 
 SAMPLE_SURFACE_HELP = ("register meshes (OBJ, STL, GLB/glTF, and PLY/OFF with faces) as N points sampled on their "
                        "surface, area-weighted and seeded (default: 5000 for mesh formats; a PLY/OFF's vertices unless "
                        "they are too few or uneven); point clouds are used as they are")
-EPILOG = """\
+EPILOG = f"""\
 formats: PLY, PCD, XYZ/TXT/CSV (x y z in the first columns), NPY ((N, 3+) array), OFF; by suffix.
 LAS/LAZ and E57 with the optional extras: pip install "logdesc-rt[las]" / "logdesc-rt[e57]".
 meshes: OBJ, STL, GLB/glTF, PLY/OFF with faces (pip install "logdesc-rt[mesh]"), sampled on
 their surface; --write-aligned OUT.ply/.obj/.stl/.off/.glb writes the moved mesh with its faces.
 
-working size: clouds larger than the model's working size (320 points for the bundled model)
-are subsampled to it (farthest-point sampling) for the networks; verification, ICP, fitness and
---write-aligned use the full clouds. The networks' memory grows with the square of the working
-size (--max-points). --second-draw matches a pair the success flag does not claim again on
-voxel working subsets and keeps the more confident result.
+working size: clouds larger than the model's working size ({DEFAULT_WORKING_SIZE} points for the
+bundled model) are subsampled to it (farthest-point sampling) for the networks; verification,
+ICP, fitness and --write-aligned use the full clouds. The networks' memory grows with the square
+of the working size (--max-points). --second-draw matches a pair the success flag does not claim
+again on voxel working subsets and keeps the more confident result.
 
 success: the pose was verified on the full clouds and the calibrated confidence reached its
 threshold (calibrated on validation pairs to be right, i.e. rotation error < 5 degrees and
@@ -664,8 +664,8 @@ def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) 
     if threads:
         parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--max-points", type=int, default=None,
-                        help="working size per cloud for the networks (default: the model's, 320 for the "
-                             "bundled one); larger clouds are subsampled; memory grows with its square")
+                        help=f"working size per cloud for the networks (default: the model's, {DEFAULT_WORKING_SIZE} for "
+                             "the bundled one); larger clouds are subsampled; memory grows with its square")
 
 
 def _add_registration_options(parser: argparse.ArgumentParser) -> None:
