@@ -25,8 +25,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
 from common import (  # noqa: E402
     ANY_RELATIVE_SUFFIX,
     DEFAULT_SEED,
@@ -37,11 +35,11 @@ from common import (  # noqa: E402
     SUCCESS_TRANSLATION_FRACTION,
     ResultCache,
     bundled_model_id,
-    model_description,
     command_line,
     is_success,
     machine_info,
     markdown_table,
+    model_description,
     modelnet10_test_pairs,
     pair_record,
     project_relative,
@@ -61,6 +59,7 @@ from methods import (  # noqa: E402
     runnable_methods,
 )
 from plots import error_cdf  # noqa: E402
+from tqdm import tqdm  # noqa: E402
 
 from logdesc_rt.synthetic import PAPER_PROTOCOLS, RESAMPLED_PROTOCOLS  # noqa: E402
 
@@ -131,7 +130,8 @@ def class_breakdown(cache: ResultCache, methods: list[str], args) -> list[str]:
     classes = sorted({r["name"].rsplit("_", 1)[0] for records in by_method.values() for r in records})
     lines = [f"Protocol {protocol}; success = L_R < {SUCCESS_ROTATION_DEG:g} deg and translation < "
              f"{100 * SUCCESS_TRANSLATION_FRACTION:g} % of the radius.", "",
-             "| class | pairs | " + " | ".join(methods) + " |", "| --- | ---: | " + " | ".join("---:" for _ in methods) + " |"]
+             "| class | pairs | " + " | ".join(methods) + " |",
+             "| --- | ---: | " + " | ".join("---:" for _ in methods) + " |"]
     for name in classes:
         cells = []
         count = 0

@@ -116,7 +116,9 @@ def run_open3d(clouds: dict[str, np.ndarray], names: list[str], icp: bool, seed:
         cloud = cloud.voxel_down_sample(voxel)
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
         down[name] = cloud
-        features[name] = registration.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        features[name] = registration.compute_fpfh_feature(
+            cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+        )
     o3d.utility.random.seed(seed)
     edges = []  # (s, t, T_st: s -> t, information)
     for s in range(len(names)):
@@ -134,7 +136,9 @@ def run_open3d(clouds: dict[str, np.ndarray], names: list[str], icp: bool, seed:
                 transformation = np.asarray(registration.registration_icp(
                     source, target, distance, transformation, registration.TransformationEstimationPointToPlane()
                 ).transformation)
-            information = registration.get_information_matrix_from_point_clouds(source, target, distance, transformation)
+            information = registration.get_information_matrix_from_point_clouds(
+                source, target, distance, transformation
+            )
             if np.trace(transformation) == 4.0:
                 continue
             if information[5, 5] / min(len(source.points), len(target.points)) < 0.3:
@@ -158,12 +162,17 @@ def run_open3d(clouds: dict[str, np.ndarray], names: list[str], icp: bool, seed:
     for s, t, transformation, information in edges:
         graph.edges.append(registration.PoseGraphEdge(s, t, transformation, information, uncertain=True))
     registration.global_optimization(
-        graph, registration.GlobalOptimizationLevenbergMarquardt(), registration.GlobalOptimizationConvergenceCriteria(),
-        registration.GlobalOptimizationOption(max_correspondence_distance=distance, edge_prune_threshold=0.25, reference_node=0),
+        graph,
+        registration.GlobalOptimizationLevenbergMarquardt(),
+        registration.GlobalOptimizationConvergenceCriteria(),
+        registration.GlobalOptimizationOption(
+            max_correspondence_distance=distance, edge_prune_threshold=0.25, reference_node=0
+        ),
     )
     seconds = time.perf_counter() - start
     poses = {names[i]: (np.asarray(graph.nodes[i].pose) if i in initial else None) for i in range(len(names))}
-    return {"poses": poses, "seconds": seconds, "accepted_pairs": len(edges), "kept_edges": len(graph.edges), "voxel_m": voxel}
+    return {"poses": poses, "seconds": seconds, "accepted_pairs": len(edges), "kept_edges": len(graph.edges),
+            "voxel_m": voxel}
 
 
 # ---------------------------------------------------------------------------- report
@@ -206,7 +215,8 @@ def picture(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], names:
         shown = rng.choice(len(points), min(len(points), 25000), replace=False) if len(points) else []
         for index in np.unique(labels[shown]) if len(points) else []:
             mask = labels[shown] == index
-            axes.scatter(*points[shown][mask].T[[0, 2, 1]], s=0.3, color=colours(int(index) % 10), label=names[int(index)])
+            axes.scatter(*points[shown][mask].T[[0, 2, 1]], s=0.3, color=colours(int(index) % 10),
+                         label=names[int(index)])
         axes.set_title(title, fontsize=9)
         axes.view_init(elev=15, azim=-60)
         axes.set_axis_off()
@@ -265,9 +275,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label}: {run['seconds']:.1f} s, {len(result.edges)} of {result.candidate_pairs} pairs verified, "
               f"disconnected {result.disconnected}", flush=True)
     try:
-        for label, icp in (("Open3D FPFH + RANSAC + pose graph", False), ("Open3D FPFH + RANSAC + ICP + pose graph", True)):
+        for label, icp in (("Open3D FPFH + RANSAC + pose graph", False),
+                           ("Open3D FPFH + RANSAC + ICP + pose graph", True)):
             methods[label] = run_open3d(clouds, names, icp, args.seed)
-            print(f"{label}: {methods[label]['seconds']:.1f} s, {methods[label]['accepted_pairs']} pairs accepted", flush=True)
+            print(f"{label}: {methods[label]['seconds']:.1f} s, {methods[label]['accepted_pairs']} pairs accepted",
+                  flush=True)
         open3d_note = ""
     except ImportError:
         open3d_note = "Open3D is not installed: its rows are missing (pip install open3d)."
@@ -287,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         f"every scan within {GOAL_DEG:g} degree and {GOAL_MM:g} mm. Wall times: this run on a 2-core machine, "
         "with whatever else ran beside it: indicative only. " + open3d_note,
         "",
-        "| method | connected scans (of 9) | within 1 deg & 1 mm | within 5 deg & 5 mm | rotation error median / max (deg) "
+        "| method | connected scans (of 9) | within 1 deg & 1 mm | within 5 deg & 5 mm "
+        "| rotation error median / max (deg) "
         "| translation error median / max (mm) | pairs kept (of 45) | wall time (s) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
@@ -309,15 +322,20 @@ def main(argv: list[str] | None = None) -> int:
             if name == method["reference"]:
                 cells.append("reference")
             else:
-                cells.append("-" if not row["connected"] else f"{row['rotation_deg']:.2f} / {row['translation_mm']:.2f}")
+                cells.append(
+                    "-" if not row["connected"] else f"{row['rotation_deg']:.2f} / {row['translation_mm']:.2f}"
+                )
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     for label in ("logdesc-rt align", "logdesc-rt align + ICP"):
         method = methods[label]
         lines += ["", f"{label}: the {method['verified_pairs']} pairs verification accepted (of 45), against the truth "
-                  f"(right: rotation within {EDGE_RIGHT_DEG:g} deg); pruned = dropped by the pose graph as inconsistent.", "",
-                  "| source -> target | confidence | edge error (deg / mm) | right | kept |", "| --- | ---: | ---: | --- | --- |"]
+                  f"(right: rotation within {EDGE_RIGHT_DEG:g} deg); pruned = dropped by the pose graph as "
+                  "inconsistent.", "",
+                  "| source -> target | confidence | edge error (deg / mm) | right | kept |",
+                  "| --- | ---: | ---: | --- | --- |"]
         for edge in method["edges"]:
-            lines.append(f"| {edge['source']} -> {edge['target']} | {edge['confidence']:.3f} | {edge['error_deg']:.2f} / "
+            lines.append(f"| {edge['source']} -> {edge['target']} | {edge['confidence']:.3f} | "
+                         f"{edge['error_deg']:.2f} / "
                          f"{edge['error_mm']:.2f} | {'yes' if edge['error_deg'] < EDGE_RIGHT_DEG else 'NO'} | "
                          f"{'yes' if edge['kept'] else 'pruned'} |")
     lines += ["", "Only pairs verification accepts enter the pose graph; a scan whose every pair is rejected stays "

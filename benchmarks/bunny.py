@@ -72,10 +72,10 @@ from common import (  # noqa: E402
     BenchmarkPair,
     ResultCache,
     bundled_model_id,
-    model_description,
     command_line,
     machine_info,
     markdown_table,
+    model_description,
     pair_record,
     project_relative,
     summarize,
@@ -633,7 +633,9 @@ def main(argv=None) -> int:
         REAL_PAIRS: runner.with_parameters(FpfhParameters.tuned(args.real_open3d_tuning)),
     }
     cache = ResultCache(cache_path, fresh=args.fresh, model_id=bundled_model_id(args.model_dir),
-                        baseline_id={part: part_runner.parameters.fingerprint() for part, part_runner in runners.items()},
+                        baseline_id={
+                            part: part_runner.parameters.fingerprint() for part, part_runner in runners.items()
+                        },
                         refinement_id=REFINEMENT_ID)
 
     scans = load_scans()

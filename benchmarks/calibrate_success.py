@@ -91,7 +91,8 @@ def synthetic_pairs(group: str, count: int, split: str = "v3"):
         dense = load_dense_shapes().subset(shapes.val_names)
         for index in range(count):
             shape = index % len(dense.points)
-            pair = make_scan_pair(dense.points[shape], dense.normals[shape], np.random.default_rng([SEED, number, index]),
+            pair = make_scan_pair(dense.points[shape], dense.normals[shape],
+                                  np.random.default_rng([SEED, number, index]),
                                   points_per_cloud=None)
             yield f"{group}/{index:04d}", pair.source, pair.target, pair.T_gt
         return
@@ -240,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
 # pair's scale): the success criterion of every benchmark (logdesc_rt.metrics).
 from logdesc_rt.metrics import SUCCESS_ROTATION_DEG as ROTATION_LIMIT_DEG  # noqa: E402
 from logdesc_rt.metrics import SUCCESS_TRANSLATION_FRACTION as TRANSLATION_LIMIT  # noqa: E402
+
 TARGET_PRECISION = 0.97  # aim above the 95 % goal, for the margin between calibration and use
 # The fast exit skips the rest of verification: its claims must be right more often still.
 EXIT_TARGET_PRECISION = 0.99
@@ -268,10 +270,10 @@ def _near_truth(truth: np.ndarray, scale: float, rng: np.random.Generator) -> np
 
 def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     """Every distinct hypothesis of one cached pair: features and whether it is right."""
-    from logdesc_rt.metrics import rotation_error_deg
-    from logdesc_rt.normalization import PairNormalization
     from logdesc_rt.config import RuntimeConfig
     from logdesc_rt.matching import Matches
+    from logdesc_rt.metrics import rotation_error_deg
+    from logdesc_rt.normalization import PairNormalization
     from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses
     from logdesc_rt.pose_selection import coarse_pose, verify_candidates
     from logdesc_rt.verification import PoseVerifier
@@ -304,7 +306,10 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
         rng = np.random.default_rng([SEED, INIT_GROUP_NUMBER, int.from_bytes(path.stem.encode(), "little") % 2**32])
         candidates.append(("init", _near_truth(data["truth"], float(data["scale"]), rng)))
     source_index, target_index = data["source_index"], data["target_index"]
-    source_user, target_user = data["source"][source_index[data["match_source"]]], data["target"][target_index[data["match_target"]]]
+    source_user, target_user = (
+        data["source"][source_index[data["match_source"]]],
+        data["target"][target_index[data["match_target"]]],
+    )
     verifier = PoseVerifier(
         data["source"], data["target"], source_user, target_user, data["confidence"], float(data["scale"]), config
     )
@@ -395,7 +400,8 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         + ("; and the Stanford Bunny scan pairs that `benchmarks/bunny.py` does **not** benchmark (overlap < 0.3)."
            if with_bunny else "; no real scan (the Bunny is a test set)."),
         "Groups",
-        "(`benchmarks/calibrate_success.py` docstring): " + ", ".join(f"{g} ({n} pairs)" for g, n in pairs_per_group.items()) + ".",
+        "(`benchmarks/calibrate_success.py` docstring): "
+        + ", ".join(f"{g} ({n} pairs)" for g, n in pairs_per_group.items()) + ".",
         "",
         "Right = rotation error < 5 deg and translation error < 5 % of the larger radius.",
         "Logistic regression (L2, every group the same total weight) on every hypothesis; the",
@@ -494,8 +500,11 @@ def fit(
     base = dataclasses.replace(base, **(settings or {}))
     features_cache = cache / "hypotheses.json"
     cached = json.loads(features_cache.read_text()) if features_cache.exists() else {}
-    if cached.get("config") != {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")}:
-        cached = {"config": {k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")},
+    if cached.get("config") != {
+        k: v for k, v in base.to_dict().items() if k not in ("weights", "bias", "success_threshold")
+    }:
+        cached = {"config": {k: v for k, v in base.to_dict().items()
+                             if k not in ("weights", "bias", "success_threshold")},
                   "rows": {}}
     started = time.perf_counter()
     for group in groups:
@@ -507,7 +516,8 @@ def fit(
     features_cache.write_text(json.dumps(cached))
     print(f"features in {time.perf_counter() - started:.0f} s", flush=True)
 
-    rows = [row for group in groups for key, pair in cached["rows"].items() if key.startswith(group + "/") for row in pair]
+    rows = [row for group in groups for key, pair in cached["rows"].items() if key.startswith(group + "/")
+            for row in pair]
     fitted = calibrate(rows, base)
     outcomes = flag_outcomes(rows, fitted)
     pairs_per_group: dict[str, int] = {}
@@ -570,7 +580,8 @@ def calibrate(rows: list[dict], base):
     confidence = np.array([outcomes[p]["confidence"] for p in pairs])
     threshold = choose_threshold(confidence, np.array([outcomes[p]["refined_right"] for p in pairs]))
     # Real scans: no wrong pose of an (unbenchmarked) real pair may be claimed.
-    real_wrong = [outcomes[p]["confidence"] for p in pairs if p.startswith("bunny") and not outcomes[p]["refined_right"]]
+    real_wrong = [outcomes[p]["confidence"] for p in pairs
+                  if p.startswith("bunny") and not outcomes[p]["refined_right"]]
     if real_wrong:
         threshold = max(threshold, float(np.ceil((max(real_wrong) + 1e-4) * 1e4) / 1e4))
     return calibrate_exit(rows, dataclasses.replace(fitted, success_threshold=threshold))

@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
             pose = run(source, target, start, distance, args.threads)
             seconds = time.perf_counter() - began
             rotation = float(rotation_error_deg(pose[:3, :3], truth[:3, :3]))
-            translation = float(np.linalg.norm(pose[:3, :3] @ centre + pose[:3, 3] - truth[:3, :3] @ centre - truth[:3, 3]))
+            translation = float(
+                np.linalg.norm(pose[:3, :3] @ centre + pose[:3, 3] - truth[:3, :3] @ centre - truth[:3, 3])
+            )
             rows.append({"pair": name, "group": group, "method": method, "rotation_error_deg": rotation,
                          "translation_error_fraction": translation / radius, "seconds": seconds,
                          "points": [len(source), len(target)]})
@@ -174,7 +176,9 @@ def main(argv: list[str] | None = None) -> int:
             entry = {
                 "pairs": len(mine),
                 "median_rotation_error_deg": float(np.median([row["rotation_error_deg"] for row in mine])),
-                "median_translation_error_fraction": float(np.median([row["translation_error_fraction"] for row in mine])),
+                "median_translation_error_fraction": float(
+                    np.median([row["translation_error_fraction"] for row in mine])
+                ),
                 "median_seconds": float(np.median([row["seconds"] for row in mine])),
                 "worst_rotation_error_deg": float(np.max([row["rotation_error_deg"] for row in mine])),
             }

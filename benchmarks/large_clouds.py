@@ -43,9 +43,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
-
 from common import command_line, machine_info, write_report  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 SEED = 20261130
 CASES = ("bunny_40k", "merged_120k", "merged_300k")
@@ -124,6 +123,7 @@ def run_case(case: str, refine: str | None, threads: int, model_dir: str | None)
 def run_open3d(case: str, threads: int) -> dict:
     """Open3D's voxel FPFH + RANSAC, then point-to-plane ICP on the full clouds (module docstring)."""
     import open3d as o3d
+
     from logdesc_rt.metrics import rotation_error_deg
 
     source, target, truth = build_case(case)
@@ -137,12 +137,17 @@ def run_open3d(case: str, threads: int) -> dict:
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         down = cloud.voxel_down_sample(voxel)
         down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-        features.append(registration.compute_fpfh_feature(down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)))
+        features.append(registration.compute_fpfh_feature(
+            down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+        ))
         clouds.append((cloud, down))
     coarse = registration.registration_ransac_based_on_feature_matching(
         clouds[0][1], clouds[1][1], features[0], features[1], True, 1.5 * voxel,
         registration.TransformationEstimationPointToPoint(False), 3,
-        [registration.CorrespondenceCheckerBasedOnEdgeLength(0.9), registration.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+        [
+            registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            registration.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+        ],
         registration.RANSACConvergenceCriteria(100000, 0.999),
     )
     coarse_seconds = time.perf_counter() - started
@@ -156,7 +161,8 @@ def run_open3d(case: str, threads: int) -> dict:
         rows.append({
             "case": case, "method": label, "source_points": len(source), "target_points": len(target),
             "seconds": elapsed, "threads": threads, "voxel_m": voxel,
-            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "peak_rss_before_mib": baseline_mib,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "peak_rss_before_mib": baseline_mib,
             "rotation_error_deg": float(rotation_error_deg(pose[:3, :3], truth[:3, :3])),
             "translation_error_m": float(np.linalg.norm(centroid @ (pose - truth)[:3].T)),
         })
@@ -183,6 +189,7 @@ def open3d_icp_placement_check(case: str = "merged_120k") -> list[dict]:
     on the case's clouds where they are (1 km from the origin) and moved back to the origin:
     whether the placement alone decides its result."""
     import open3d as o3d
+
     from logdesc_rt.metrics import rotation_error_deg
 
     source, target, truth = build_case(case)
@@ -240,7 +247,8 @@ def markdown(rows: list[dict], args, open3d_rows: list[dict] | None = None, plac
             "faster). Open3D's point-to-plane ICP linearises the rotation about the origin: the merged cases sit "
             "1 km from it (as georeferenced scans do), where its steps go wrong.",
             "",
-            "| case | method | voxel m | seconds | ratio | peak RSS MiB | rotation error deg | error at the source centroid mm |",
+            "| case | method | voxel m | seconds | ratio | peak RSS MiB | rotation error deg "
+            "| error at the source centroid mm |",
             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
         ours = {(row["case"], bool(row["refine"])): row["seconds"] for row in rows}
@@ -249,7 +257,8 @@ def markdown(rows: list[dict], args, open3d_rows: list[dict] | None = None, plac
             ratio = row["seconds"] / ours[key] if key in ours else float("nan")
             lines.append(
                 f"| {row['case']} | {row['method']} | {row['voxel_m']:.4f} | {row['seconds']:.2f} | {ratio:.2f}x | "
-                f"{row['peak_rss_mib']:.0f} | {row['rotation_error_deg']:.2f} | {1e3 * row['translation_error_m']:.1f} |"
+                f"{row['peak_rss_mib']:.0f} | {row['rotation_error_deg']:.2f} | "
+                f"{1e3 * row['translation_error_m']:.1f} |"
             )
     if placement:
         lines += ["", "Open3D's point-to-plane ICP from the truth turned 1 degree, the same clouds where they are and "
@@ -283,7 +292,8 @@ def main(argv: list[str] | None = None) -> int:
             command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, "open3d"]
             output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
             open3d_rows += json.loads(output.strip().splitlines()[-1])["open3d"]
-            print(f"{case} Open3D: {open3d_rows[-1]['seconds']:.2f} s, {open3d_rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
+            print(f"{case} Open3D: {open3d_rows[-1]['seconds']:.2f} s, "
+                  f"{open3d_rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
         for refine in REFINEMENTS:
             command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, refine or "none"]
             if args.model_dir:
@@ -295,7 +305,11 @@ def main(argv: list[str] | None = None) -> int:
     placement = []
     if not args.no_open3d:
         command = [sys.executable, __file__, "--one", "merged_120k", "placement"]
-        placement = json.loads(subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout.strip().splitlines()[-1])
+        placement = json.loads(
+            subprocess.run(
+                command, capture_output=True, text=True, check=True, env=environment
+            ).stdout.strip().splitlines()[-1]
+        )
     write_report(args.stem, markdown(rows, args, open3d_rows, placement),
                  {"command": command_line(), "machine": machine_info(), "rows": rows, "open3d_rows": open3d_rows,
                   "open3d_icp_placement": placement})

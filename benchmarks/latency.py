@@ -7,7 +7,8 @@ Writes ``latency.md``, ``latency.json`` and ``latency_vs_points.png`` into ``--o
 
 Clouds: real data at every N. The Stanford Bunny scan ``bun000.ply`` (40,256 points)
 is farthest-point sampled to N points, centred, scaled into the unit sphere and turned
-by -90 degrees about x (``WORKING_TURN``: see the comment there): the source. The target is the source moved by one fixed, seeded rigid motion (drawn as
+by -90 degrees about x (``WORKING_TURN``: see the comment there): the source. The target
+is the source moved by one fixed, seeded rigid motion (drawn as
 :mod:`logdesc_rt.synthetic` draws it: Euler angles uniform in [0, 45] degrees per axis,
 translation uniform in [-0.5, 0.5] per axis; the same motion at every N). Each cloud
 then gets its own Gaussian noise (sigma 0.01, clipped at 0.05, the "noisy" protocol)

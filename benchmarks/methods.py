@@ -406,7 +406,8 @@ class MethodRunner:
             subsampling = dataclasses.replace(pair.config.subsampling, second_draw=second_draw)
             pair = dataclasses.replace(pair, config=dataclasses.replace(pair.config, subsampling=subsampling))
         start = time.perf_counter()
-        result = self.registrar.register_matches(pair, refine=refine, seed=seed, thorough=thorough)  # a failure is a result
+        # A failure is a result.
+        result = self.registrar.register_matches(pair, refine=refine, seed=seed, thorough=thorough)
         seconds = match_seconds + time.perf_counter() - start
         failed = result.pose_estimator == "none"  # no pose could be estimated (too few matches)
         fast_exit = bool(result.verification is not None and result.verification.fast_exit)
@@ -452,8 +453,10 @@ class MethodRunner:
         results = {}
         wanted = set(self.methods) | {REFINED_FROM[m] for m in self.methods if m in REFINED_FROM}
         for name, estimate in (
-            (f"{prefix}_ransac", lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
-            (f"{prefix}_fgr", lambda: feature_fgr(source, target, source_features, target_features, self.parameters, seed)),
+            (f"{prefix}_ransac",
+             lambda: feature_ransac(source, target, source_features, target_features, self.parameters, seed)),
+            (f"{prefix}_fgr",
+             lambda: feature_fgr(source, target, source_features, target_features, self.parameters, seed)),
         ):
             if name not in wanted:
                 continue

@@ -53,10 +53,10 @@ from methods import (  # noqa: E402
     parameters_dict,
     runnable_methods,
 )
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 from logdesc_rt.io import DEFAULT_SURFACE_SAMPLES, read_mesh, read_point_cloud, read_stanford_conf  # noqa: E402
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 LEARNED = ("logdesc_auto", "logdesc_auto_icp")
 CLASSICAL = ("fpfh_ransac", "fpfh_ransac_icp")
@@ -131,9 +131,13 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Source: `reconstruction/bun_zipper.ply` read as a mesh ({len(mesh.vertices):,} vertices, "
         f"{len(mesh.faces):,} triangles), {DEFAULT_SURFACE_SAMPLES} points sampled on its surface (area-weighted, "
-        "seed 0), as `register()` reads a mesh file, then placed anywhere (a seeded random rigid motion per scan). Target: each real scan (~40k points, metres, its own frame). "
-        f"Truth: `inv(T_scan) @ inv(M)` (`bun.conf`, the motion M). L_t: the model's centre moved by the estimate against by the truth. Success: L_R < {SUCCESS_ROTATION_DEG:g} deg and L_t < "
-        f"{SUCCESS_TRANSLATION_FRACTION:.0%} of the mesh's radius ({1e3 * SUCCESS_TRANSLATION_FRACTION * radius:.1f} mm).",
+        "seed 0), as `register()` reads a mesh file, then placed anywhere (a seeded random rigid motion per scan). "
+        "Target: each real scan (~40k points, metres, its own frame). "
+        "Truth: `inv(T_scan) @ inv(M)` (`bun.conf`, the motion M). "
+        "L_t: the model's centre moved by the estimate against by the truth. "
+        f"Success: L_R < {SUCCESS_ROTATION_DEG:g} deg and L_t < "
+        f"{SUCCESS_TRANSLATION_FRACTION:.0%} of the mesh's radius "
+        f"({1e3 * SUCCESS_TRANSLATION_FRACTION * radius:.1f} mm).",
         "",
         f"Model: {model_description(args.model_dir)}",
         "",

@@ -28,8 +28,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
 from common import (  # noqa: E402
     RESULTS,
     BenchmarkPair,
@@ -42,6 +40,7 @@ from common import (  # noqa: E402
     write_report,
 )
 from methods import SCAN_TUNING_FILE, TUNING_FILE, FpfhParameters, MethodRunner, runnable_methods  # noqa: E402
+from tqdm import tqdm  # noqa: E402
 
 from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
 
@@ -113,7 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     methods = runnable_methods(METHODS)
-    modelnet_set, bunny_set = "ModelNet10 test, noisy + partial, any relative rotation", "Stanford Bunny, real scan pairs"
+    modelnet_set, bunny_set = (
+        "ModelNet10 test, noisy + partial, any relative rotation",
+        "Stanford Bunny, real scan pairs",
+    )
     sets = {modelnet_set: list(modelnet10_test_pairs(["partial_any_relative"], args.pairs)), bunny_set: bunny_pairs()}
     # Open3D gets the parameters tuned on validation pairs of each set's kind (ModelNet pairs;
     # simulated range scans for the real scans); the learned methods share one registrar.

@@ -22,7 +22,8 @@ Throughput is pairs / wall time of the ``register_many`` call (start-up included
 the steady rate after every worker's first record. Records must be identical, key for key but
 the timings, across the three ``x 1`` runs (equal threads per worker); the ``1 x cores`` run
 sums in another order, so it is held to the same decisions (success, estimator, match count)
-and poses within 1e-6 (round-off of the summation order; the largest difference is reported). The ground-truth success rate (rotation error < 5 degrees and
+and poses within 1e-6 (round-off of the summation order; the largest difference is reported). The ground-truth
+success rate (rotation error < 5 degrees and
 translation error < 5 % of the radius) is reported per run.
 
 Writes ``<out>/register_many_throughput.{md,json}``. Wall times depend on the machine's load:
@@ -167,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
         s = result["summary"]
         lines.append(
             f"| {label} | {s['workers']} x {s['threads_per_worker']} | {s['pairs_per_s']:.2f} | "
-            f"{_number(s['steady_pairs_per_s'])} | {s['wall_s']:.1f} | {_number(s['first_record_s'], 1)} | {s['errors']} | "
+            f"{_number(s['steady_pairs_per_s'])} | {s['wall_s']:.1f} | {_number(s['first_record_s'], 1)} | "
+            f"{s['errors']} | "
             f"{s['flagged_success']} | {s['right']} ({100.0 * s['right'] / s['pairs']:.1f} %) |"
         )
     lines += [

@@ -39,8 +39,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
 from common import (  # noqa: E402
     DATA_ROOT,
     OVERLAP_SPACINGS,
@@ -53,10 +51,10 @@ from common import (  # noqa: E402
     machine_info,
     markdown_table,
     model_description,
-    project_relative,
     overlap_markdown_table,
     overlap_ratio,
     pair_record,
+    project_relative,
     success_by_overlap,
     summarize,
     write_report,
@@ -70,6 +68,7 @@ from methods import (  # noqa: E402
     parameters_dict,
     runnable_methods,
 )
+from tqdm import tqdm  # noqa: E402
 
 from logdesc_rt.metrics import twin_distance  # noqa: E402
 from logdesc_rt.scan_simulation import make_scan_pair  # noqa: E402
@@ -177,7 +176,12 @@ def symmetry_twins_table(table: dict[str, dict]) -> str:
 
 
 def protocol_pairs(
-    split: str, protocol: str, count: int, seed: int = 0, data_root: Path = DATA_ROOT, complete_shapes: dict | None = None
+    split: str,
+    protocol: str,
+    count: int,
+    seed: int = 0,
+    data_root: Path = DATA_ROOT,
+    complete_shapes: dict | None = None,
 ):
     """``count`` pairs of a split: raw scan pairs for ``protocol == "scan"``, else the shape
     protocol's (:func:`scan_pairs`, :func:`shape_pairs`)."""
@@ -191,7 +195,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--pairs", type=int, default=60)
     parser.add_argument("--split", choices=["test", "val"], default="test")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=(*METHODS, "logdesc_thorough", "logdesc_second_draw"))
+    parser.add_argument("--methods", nargs="+", default=list(METHODS),
+                        choices=(*METHODS, "logdesc_thorough", "logdesc_second_draw"))
     parser.add_argument("--protocol", default="scan", choices=["scan", *SHAPE_PROTOCOLS])
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--model-dir", type=Path, default=None, help="an exported model instead of the bundled one")

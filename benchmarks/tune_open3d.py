@@ -32,13 +32,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
 from common import command_line, machine_info, pair_record, summarize, validation_pairs, write_report  # noqa: E402
 from methods import TUNING_FILE, FpfhParameters, MethodRunner  # noqa: E402
+from tqdm import tqdm  # noqa: E402
 
 from logdesc_rt.scan_simulation import SCAN_PROTOCOL  # noqa: E402
-from logdesc_rt.synthetic import PAPER_PROTOCOLS, PROTOCOLS as SYNTHETIC_PROTOCOLS  # noqa: E402
+from logdesc_rt.synthetic import PAPER_PROTOCOLS  # noqa: E402
+from logdesc_rt.synthetic import PROTOCOLS as SYNTHETIC_PROTOCOLS  # noqa: E402
 
 VOXELS = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2)
 SCAN_VOXELS = (0.02, 0.03, *VOXELS)  # raw views hold ~300-3000 points, up to 3x a shape's 1024
@@ -75,7 +75,8 @@ def tuning_pairs(protocol: str, count: int) -> list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=20, help="validation pairs per protocol")
-    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=(*SYNTHETIC_PROTOCOLS, SCAN_PROTOCOL),
+    parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS),
+                        choices=(*SYNTHETIC_PROTOCOLS, SCAN_PROTOCOL),
                         help="validation protocols to tune on (default: the paper's)")
     parser.add_argument("--out", type=Path, default=TUNING_FILE.parent,
                         help="folder for open3d_tuning.{md,json}; the default one is what methods.py reads")
@@ -109,7 +110,8 @@ def main(argv=None) -> int:
         "",
         f"Pairs: {args.pairs} per protocol ({', '.join(args.protocols)}) from the held-out training shapes "
         "(never the ModelNet10 test split"
-        + ("; scan pairs: v4's validation split of the dense shapes, never its test names" if SCAN_PROTOCOL in args.protocols else "")
+        + ("; scan pairs: v4's validation split of the dense shapes, never its test names"
+           if SCAN_PROTOCOL in args.protocols else "")
         + "). Units: network units (object radius = 1).",
         f"Command: `{command_line()}`. Machine: {machine_info()}.",
         "",

@@ -166,7 +166,9 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
     match = onnxruntime.InferenceSession(str(out_dir / MATCHER_FILE), providers=["CPUExecutionProvider"])
     same_size_file = out_dir / SAME_SIZE_MATCHER_FILE
     match_same_size = (
-        onnxruntime.InferenceSession(str(same_size_file), providers=["CPUExecutionProvider"]) if same_size_file.is_file() else None
+        onnxruntime.InferenceSession(str(same_size_file), providers=["CPUExecutionProvider"])
+        if same_size_file.is_file()
+        else None
     )
     rng = np.random.default_rng(0)
     cases = []
@@ -180,7 +182,9 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
 
         with h5py.File(shape_file, "r") as handle:
             shape = handle["data"][0].astype(np.float64)
-        cases.append(("ModelNet10 test shape 0 vs itself rotated", shape - shape.mean(0), _rotate(shape - shape.mean(0))))
+        cases.append(
+            ("ModelNet10 test shape 0 vs itself rotated", shape - shape.mean(0), _rotate(shape - shape.mean(0)))
+        )
     else:
         print(f"(no real-shape check: {shape_file} not found)")
 
@@ -189,8 +193,10 @@ def compare_with_torch(model, info: CheckpointInfo, out_dir: Path) -> bool:
         geometry_src = compute_geometry(source, info.geometry)
         geometry_tgt = compute_geometry(target, info.geometry)
         as_input = lambda array: np.asarray(array, dtype=np.float32)[None]  # noqa: E731
-        describe_src = {"edges": as_input(geometry_src.edges), "points": as_input(source), "normals": as_input(geometry_src.normals)}
-        describe_tgt = {"edges": as_input(geometry_tgt.edges), "points": as_input(target), "normals": as_input(geometry_tgt.normals)}
+        describe_src = {"edges": as_input(geometry_src.edges), "points": as_input(source),
+                        "normals": as_input(geometry_src.normals)}
+        describe_tgt = {"edges": as_input(geometry_tgt.edges), "points": as_input(target),
+                        "normals": as_input(geometry_tgt.normals)}
         with torch.no_grad():
             t_desc_src = model.describe(*(torch.from_numpy(describe_src[name]) for name in model.describe_inputs))
             t_desc_tgt = model.describe(*(torch.from_numpy(describe_tgt[name]) for name in model.describe_inputs))

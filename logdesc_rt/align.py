@@ -364,7 +364,9 @@ def _verified_edges(pairs, records, config: AlignConfig) -> tuple[list[PoseEdge]
     edges, rejected = [], []
     for (i, j), record in zip(pairs, records):
         if not record.get("ok"):
-            rejected.append({"first": i, "second": j, "reason": record["error"]["type"] + ": " + record["error"]["message"], "confidence": None})
+            rejected.append({"first": i, "second": j,
+                             "reason": record["error"]["type"] + ": " + record["error"]["message"],
+                             "confidence": None})
             continue
         passed = record["success"] if config.min_confidence is None else record["confidence"] >= config.min_confidence
         if not passed or record["inlier_rmse"] is None:
@@ -540,7 +542,9 @@ def _solve(component, edges, centroids, radii, config: AlignConfig, reference: i
     )
     poses = {reference: np.eye(4)}
     for index in free:
-        poses[index] = centre(reference) @ _from_vector(solution.x[6 * slot[index] : 6 * slot[index] + 6]) @ uncentre(index)
+        poses[index] = (
+            centre(reference) @ _from_vector(solution.x[6 * slot[index] : 6 * slot[index] + 6]) @ uncentre(index)
+        )
     return poses
 
 
@@ -596,7 +600,9 @@ def merge_scans(
     return points[kept], scan[kept]
 
 
-def write_merged(path: str | os.PathLike, scans: Sequence, result: AlignmentResult, voxel_size: float | None = None) -> int:
+def write_merged(
+    path: str | os.PathLike, scans: Sequence, result: AlignmentResult, voxel_size: float | None = None
+) -> int:
     """Write :func:`merge_scans`'s cloud with a per-point ``scan`` index (any format
     :func:`~logdesc_rt.write_point_cloud` writes with attributes: PLY, PCD, XYZ/TXT/CSV, NPY,
     LAS/LAZ; ``logdesc_rt.io.ATTRIBUTE_SUFFIXES``).

@@ -458,7 +458,9 @@ def _run_ray(todo, clouds, workers, threads, address, model_dir, config, options
         actor_class = ray.remote(num_cpus=threads)(_RayWorker)
         actors = [actor_class.remote(spec) for _ in range(workers)]
         # Each array once into the object store; paths travel as they are.
-        table = {key: (cloud if isinstance(cloud, str) else ray.put(np.asarray(cloud))) for key, cloud in clouds.items()}
+        table = {
+            key: (cloud if isinstance(cloud, str) else ray.put(np.asarray(cloud))) for key, cloud in clouds.items()
+        }
         queue = list(reversed(todo))
         running: dict[Any, tuple[PairJob, Any]] = {}
 

@@ -613,7 +613,9 @@ class RefinementConfig(_DictMixin):
         if self.evaluation_points is not None and self.evaluation_points < 1:
             raise ValueError(f"RefinementConfig.evaluation_points must be None or >= 1, got {self.evaluation_points}")
         if self.method is not None and self.method not in REFINEMENT_METHODS:
-            raise ValueError(f"RefinementConfig.method must be None or one of {REFINEMENT_METHODS}, got {self.method!r}")
+            raise ValueError(
+                f"RefinementConfig.method must be None or one of {REFINEMENT_METHODS}, got {self.method!r}"
+            )
         distance = self.max_correspondence_distance
         if distance is not None and not 0.0 < distance < float("inf"):
             raise ValueError(f"RefinementConfig.max_correspondence_distance must be None or > 0, got {distance}")

@@ -236,7 +236,9 @@ class OnnxNetwork:
     clouds go one after the other.
     """
 
-    def __init__(self, model_dir: str | Path | None = None, threads: int | None = None, fixed_points: int | None = None):
+    def __init__(
+        self, model_dir: str | Path | None = None, threads: int | None = None, fixed_points: int | None = None
+    ):
         self.model_dir = Path(model_dir) if model_dir is not None else bundled_model_dir()
         self.manifest = read_manifest(self.model_dir)
         if threads is not None and threads < 1:
@@ -320,7 +322,11 @@ class OnnxNetwork:
         """
         feeds = [self._feeds(self._descriptor_inputs, cloud) for cloud in (source, target)]
         counts = [len(cloud["points"]) for cloud in (source, target)]
-        if self.fixed_points is None or any(count != self.fixed_points for count in counts) or not self._can_go_side_by_side():
+        if (
+            self.fixed_points is None
+            or any(count != self.fixed_points for count in counts)
+            or not self._can_go_side_by_side()
+        ):
             return tuple(self._run(DESCRIPTOR_FILE, feed, count) for feed, count in zip(feeds, counts))
         session = self._half_descriptor
         source_job = second_network_thread().submit(session.run, None, feeds[0])

@@ -31,7 +31,9 @@ from .outliers import stray_point_mask
 from .validation import as_points
 
 
-def centre_and_radius(points: np.ndarray, config: NormalizationConfig = NormalizationConfig()) -> tuple[np.ndarray, float]:
+def centre_and_radius(
+    points: np.ndarray, config: NormalizationConfig = NormalizationConfig()
+) -> tuple[np.ndarray, float]:
     """The centroid (3,) of (N, 3) ``points`` and their radius about it (the largest distance),
     stray points (``config.stray_*``) left out of both."""
     kept = points[~stray_point_mask(points, config)]

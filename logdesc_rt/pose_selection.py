@@ -87,10 +87,13 @@ def register_matched(
     if config.estimator != "auto" and config.estimator not in dict(candidates):
         return unregistered_result(
             pair, config, timings,
-            f"no candidate pose: estimator {config.estimator!r} found none (its matches are degenerate: all on one line)",
+            f"no candidate pose: estimator {config.estimator!r} found none "
+            "(its matches are degenerate: all on one line)",
         )
     if not candidates:
-        return unregistered_result(pair, config, timings, "no candidate pose: the matches are degenerate (all on one line)")
+        return unregistered_result(
+            pair, config, timings, "no candidate pose: the matches are degenerate (all on one line)"
+        )
 
     report(
         f"verifying {len(candidates)} candidate poses on the full clouds "
@@ -98,7 +101,9 @@ def register_matched(
     )
     with timed(timings, "verification"), one_thread_per_caller():
         verifier = verifier if verifier is not None else pose_verifier(pair, config)
-        verification = verify_candidates(verifier, candidates, pair.normalization, *pair.matched_network_points(), config)
+        verification = verify_candidates(
+            verifier, candidates, pair.normalization, *pair.matched_network_points(), config
+        )
     return _verified_result(pair, config, timings, verifier, verification, report, candidates)
 
 
@@ -134,7 +139,10 @@ def _verified_result(
     if config.estimator == "auto":
         chosen = verification.best
         chosen_estimator = chosen.estimators[0]
-        source_matched, target_matched = pair.source_points[correspondences[:, 0]], pair.target_points[correspondences[:, 1]]
+        source_matched, target_matched = (
+            pair.source_points[correspondences[:, 0]],
+            pair.target_points[correspondences[:, 1]],
+        )
         with timed(timings, "pose"), one_thread_per_caller():  # the returned pose is estimated here too
             pose = coarse_pose(
                 chosen, source_matched, target_matched, pair.matches.confidence,
@@ -297,7 +305,9 @@ def _judged_result(
             fitness, inlier_rmse = icp_evaluation.fitness, icp_evaluation.inlier_rmse
             fitness_points = min(len(pair.source_points), refinement.evaluation_points or len(pair.source_points))
         else:
-            scored = seeded_subset(len(pair.source_points), refinement.evaluation_points, np.random.default_rng(refinement.seed))
+            scored = seeded_subset(
+                len(pair.source_points), refinement.evaluation_points, np.random.default_rng(refinement.seed)
+            )
             evaluation = evaluate_registration(pair.source_points[scored], pair.target_points, distance, transformation)
             fitness, inlier_rmse, fitness_points = evaluation.fitness, evaluation.inlier_rmse, len(scored)
     timings["total"] = sum(timings.values())

@@ -177,7 +177,8 @@ class LazyNormals:
             k = self.neighbours
             _, neighbour_index = self.tree.query(self.points[missing], k=k)
             self.normals[missing] = neighbourhood_normals(
-                np.ascontiguousarray(self.points, dtype=np.float64), neighbour_index.reshape(len(missing), k).astype(np.int64)
+                np.ascontiguousarray(self.points, dtype=np.float64),
+                neighbour_index.reshape(len(missing), k).astype(np.int64),
             )
             self.known[missing] = True
             self.complete = bool(self.known.all())
@@ -276,7 +277,9 @@ def icp(
             normals = LazyNormals(target_working, tree)
         elif isinstance(target_normals, LazyNormals):
             if len(target_normals.points) != len(target):
-                raise ValueError(f"target_normals: normals of {len(target_normals.points)} points, expected {len(target)}")
+                raise ValueError(
+                    f"target_normals: normals of {len(target_normals.points)} points, expected {len(target)}"
+                )
             normals = target_normals
         else:
             given = np.asarray(target_normals, dtype=np.float64)

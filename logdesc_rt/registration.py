@@ -254,8 +254,16 @@ class Registrar:
         network_source, network_target = prepared.source_network, prepared.target_network
         with timed(timings, "descriptors"):
             source_descriptors, target_descriptors = self.network.describe_pair(
-                {"edges": prepared.source_geometry.edges, "points": network_source, "normals": prepared.source_geometry.normals},
-                {"edges": prepared.target_geometry.edges, "points": network_target, "normals": prepared.target_geometry.normals},
+                {
+                    "edges": prepared.source_geometry.edges,
+                    "points": network_source,
+                    "normals": prepared.source_geometry.normals,
+                },
+                {
+                    "edges": prepared.target_geometry.edges,
+                    "points": network_target,
+                    "normals": prepared.target_geometry.normals,
+                },
             )
         with timed(timings, "matcher"):
             scores = self.network.match_scores(
@@ -326,7 +334,9 @@ class Registrar:
         network_target = normalization.target_to_network(target_points[target_index])
         with timed(timings, "geometry"):
             geometry = self.manifest.geometry
-            source_geometry, target_geometry = per_cloud(compute_geometry, (network_source, geometry), (network_target, geometry))
+            source_geometry, target_geometry = per_cloud(
+                compute_geometry, (network_source, geometry), (network_target, geometry)
+            )
         return PreparedPair(
             source_points=source_points,
             target_points=target_points,

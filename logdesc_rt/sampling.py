@@ -19,11 +19,11 @@ import operator
 
 import numpy as np
 
+from ._jit import jit
 from .config import SUBSAMPLING_METHODS, NormalizationConfig
 from .errors import InvalidPointCloudError, TooFewPointsError
 from .outliers import stray_point_mask
 from .validation import as_points
-from ._jit import jit
 
 # A voxel grid with more cells than this along one axis is refused: the integer voxel
 # coordinates would lose exactness, and such a grid keeps every point anyway.

@@ -181,8 +181,12 @@ def make_scan_pair(
         first = Rotation.random(random_state=rng).apply([0.0, 0.0, 1.0])
         view_angle = rng.uniform(*VIEW_ANGLE_DEG)
         second = _second_direction(first, view_angle, rng)
-        source_view, source_origin = _view(dense_points[source_members], dense_normals[source_members], first, rng, thin)
-        target_view, target_origin = _view(dense_points[target_members], dense_normals[target_members], second, rng, thin)
+        source_view, source_origin = _view(
+            dense_points[source_members], dense_normals[source_members], first, rng, thin
+        )
+        target_view, target_origin = _view(
+            dense_points[target_members], dense_normals[target_members], second, rng, thin
+        )
         if points_per_cloud is None:  # the raw views
             source_keep, target_keep = np.arange(len(source_view)), np.arange(len(target_view))
         else:

@@ -36,14 +36,16 @@ def test_resume_skips_pairs_already_done(pairs, tmp_path):
     assert [record["id"] for record in _lines(output)] == ["first", "second"]
 
     seen: list[str] = []
-    second = register_many(pairs, workers=0, output=output, seed=0, progress=False, on_record=lambda r: seen.append(r["id"]))
+    second = register_many(pairs, workers=0, output=output, seed=0, progress=False,
+                           on_record=lambda r: seen.append(r["id"]))
     assert seen == ["reversed"], "pairs already in the output must not run again"
     assert [record["id"] for record in second] == ["first", "second", "reversed"]
     assert second[:2] == first[:2], "skipped pairs come back as they were written"
     assert [record["id"] for record in _lines(output)] == ["first", "second", "reversed"]
 
     fresh: list[str] = []
-    register_many(pairs[:1], workers=0, output=output, resume=False, seed=0, progress=False, on_record=lambda r: fresh.append(r["id"]))
+    register_many(pairs[:1], workers=0, output=output, resume=False, seed=0, progress=False,
+                  on_record=lambda r: fresh.append(r["id"]))
     assert fresh == ["first"] and [record["id"] for record in _lines(output)] == ["first"]
 
 
@@ -64,7 +66,9 @@ def test_unreadable_file_becomes_an_error_record_and_the_run_goes_on(pairs, tmp_
     write_point_cloud(good_source, pairs[0][1])
     write_point_cloud(good_target, pairs[0][2])
     corrupt = tmp_path / "corrupt.ply"
-    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n\x00\x01")
+    corrupt.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n\x00\x01"
+    )
     missing = tmp_path / "missing.pcd"
     work = [(good_source, good_target), (corrupt, good_target), (good_source, missing)]
     output = tmp_path / "results.jsonl"
@@ -82,7 +86,8 @@ def test_unreadable_file_becomes_an_error_record_and_the_run_goes_on(pairs, tmp_
     # Resume runs the error records again (the files may have been mended), not the good pair.
     write_point_cloud(missing, pairs[0][2])
     seen: list[str] = []
-    again = register_many(work, workers=0, output=output, seed=0, progress=False, on_record=lambda r: seen.append(r["id"]))
+    again = register_many(work, workers=0, output=output, seed=0, progress=False,
+                          on_record=lambda r: seen.append(r["id"]))
     assert seen == [records[1]["id"], records[2]["id"]]
     assert again[2]["ok"] and not again[1]["ok"]
 
@@ -96,7 +101,9 @@ def test_one_and_two_workers_give_the_same_records(pairs):
     # round-off of the summation order.
     default_one = register_many(pairs, workers=1, seed=0, progress=False)
     for a, b in zip(default_one, two):
-        assert (a["success"], a["pose_estimator"], a["correspondence_count"]) == (b["success"], b["pose_estimator"], b["correspondence_count"])
+        assert (a["success"], a["pose_estimator"], a["correspondence_count"]) == (
+            b["success"], b["pose_estimator"], b["correspondence_count"]
+        )
         np.testing.assert_allclose(a["transformation"], b["transformation"], rtol=0, atol=1e-9)
         assert a["confidence"] == pytest.approx(b["confidence"], abs=1e-9)
 

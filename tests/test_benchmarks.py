@@ -159,7 +159,8 @@ def test_tuned_open3d_parameters_follow_from_the_recorded_sweep():
     assert methods.FpfhParameters.tuned() == tune_open3d.choose(recorded["rows"])
     # The rule does pick by the measurements: make another voxel the clear winner.
     rows = {label: dict(row) for label, row in recorded["rows"].items()}
-    other = next(row for row in rows.values() if row["method"] == "fpfh_fgr" and row["value"] != recorded["chosen"]["voxel"])
+    other = next(row for row in rows.values()
+                 if row["method"] == "fpfh_fgr" and row["value"] != recorded["chosen"]["voxel"])
     other["success"] = 1.01
     assert tune_open3d.choose(rows).voxel == other["value"]
 
@@ -220,7 +221,9 @@ def test_accuracy_script_end_to_end_on_one_pair(shared_data, tmp_path):
     assert (tmp_path / "modelnet10_error_cdf.png").stat().st_size > 1000
     # A second run reuses the cached pair instead of recomputing it.
     lines = (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines()
-    accuracy_modelnet.main(["--pairs", "1", "--protocols", "partial", "--methods", "logdesc_fsr", "--out", str(tmp_path)])
+    accuracy_modelnet.main(
+        ["--pairs", "1", "--protocols", "partial", "--methods", "logdesc_fsr", "--out", str(tmp_path)]
+    )
     assert (tmp_path / "modelnet10_accuracy_pairs.jsonl").read_text().splitlines() == lines
 
 
@@ -403,7 +406,8 @@ def test_runner_runs_a_subset_with_the_same_results(shared_data):
     everything = runner.run(pair.source, pair.target, seed=0)
     learned = runner.run(pair.source, pair.target, seed=0, methods=["logdesc_svd"])
     assert list(learned) == ["logdesc_svd"]
-    np.testing.assert_allclose(learned["logdesc_svd"].transformation, everything["logdesc_svd"].transformation, atol=1e-9)
+    np.testing.assert_allclose(learned["logdesc_svd"].transformation, everything["logdesc_svd"].transformation,
+                               atol=1e-9)
     assert runner._subset(("logdesc_svd",)).registrar is runner.registrar  # one network, loaded once
     with pytest.raises(ValueError, match="not among"):
         runner.run(pair.source, pair.target, methods=["fpfh_fgr"])
@@ -412,9 +416,8 @@ def test_runner_runs_a_subset_with_the_same_results(shared_data):
 def test_large_cloud_cases_carry_their_true_pose(shared_data):
     """benchmarks/large_clouds.py: the truth maps each case's source onto its target (and a
     wrong pose does not), so its error columns measure the registration, not the set-up."""
-    from pykdtree.kdtree import KDTree
-
     import large_clouds
+    from pykdtree.kdtree import KDTree
 
     for case, size in (("bunny_40k", 30_000), ("merged_120k", 120_000), ("merged_300k", 300_000)):
         source, target, truth = large_clouds.build_case(case)

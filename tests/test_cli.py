@@ -105,8 +105,8 @@ def test_version_and_help_say_what_a_user_needs():
     help_text = run_cli("register", "--help").stdout
     from logdesc_rt.config import DEFAULT_WORKING_SIZE
 
-    for needed in (".ply", ".pcd", ".xyz", ".npy", ".off", "auto", "ransac", f"{DEFAULT_WORKING_SIZE} points", "success",
-                   "--allow-failure", "exit codes", "--init", "--config", "--second-draw", "matplotlib"):
+    for needed in (".ply", ".pcd", ".xyz", ".npy", ".off", "auto", "ransac", f"{DEFAULT_WORKING_SIZE} points",
+                   "success", "--allow-failure", "exit codes", "--init", "--config", "--second-draw", "matplotlib"):
         assert needed in help_text, needed
 
 
@@ -394,7 +394,8 @@ def test_register_reads_and_writes_las_and_e57(cloud_files, tmp_path):
     assert completed.returncode == 0, completed.stderr
     transformation = np.array(json.loads(completed.stdout)["transformation"])
     assert rotation_error_deg(transformation[:3, :3], pair.true_transformation[:3, :3]) < 2.0
-    np.testing.assert_allclose(read_point_cloud(aligned), pair.source @ transformation[:3, :3].T + transformation[:3, 3],
+    np.testing.assert_allclose(read_point_cloud(aligned),
+                               pair.source @ transformation[:3, :3].T + transformation[:3, 3],
                                atol=1e-8)
 
 

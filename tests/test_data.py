@@ -274,7 +274,10 @@ def test_dataset_sample_tensors():
     shapes = np.stack([_shape(1024, seed) for seed in range(3)]).astype(np.float32)
     dataset = PairDataset(shapes, seed=9)
     sample = dataset[PairKey(0, 1, "partial", 1024)]
-    assert sample["src_edges"].shape == (768, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels) and sample["src_edges"].dtype == np.float32
+    assert (
+        sample["src_edges"].shape == (768, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels)
+        and sample["src_edges"].dtype == np.float32
+    )
     assert sample["tgt_points"].shape == (768, 3) and sample["src_normals"].shape == (768, 3)
     np.testing.assert_allclose(np.linalg.norm(sample["src_normals"], axis=1), 1.0, atol=1e-5)
     # Network-frame pose and points agree with the user-frame ones via the stored normalisation.
@@ -282,7 +285,8 @@ def test_dataset_sample_tensors():
 
     norm = PairNormalization(sample["source_centre"], sample["target_centre"], float(sample["scale"]))
     np.testing.assert_allclose(norm.source_to_network(sample["source_user"]), sample["src_points"], atol=1e-5)
-    np.testing.assert_allclose(norm.pose_to_user_frame(sample["T_gt"].astype(np.float64)), sample["T_gt_user"], atol=1e-5)
+    np.testing.assert_allclose(norm.pose_to_user_frame(sample["T_gt"].astype(np.float64)), sample["T_gt_user"],
+                               atol=1e-5)
     residuals = _residuals(sample["source_user"], sample["target_user"], sample["T_gt_user"], sample["gt_match_src"])
     assert residuals.max() <= NOISE_BOUND
     again = dataset[PairKey(0, 1, "partial", 1024)]
@@ -296,7 +300,10 @@ def test_dataset_collates_into_a_batch():
     shapes = np.stack([_shape(1024, seed) for seed in range(4)]).astype(np.float32)
     keys = [[PairKey(0, i, "noisy", 128) for i in range(4)]]
     batch = next(iter(DataLoader(PairDataset(shapes), batch_sampler=keys)))
-    assert batch["src_edges"].shape == (4, 128, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels) and batch["src_edges"].dtype == torch.float32
+    assert (
+        batch["src_edges"].shape == (4, 128, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels)
+        and batch["src_edges"].dtype == torch.float32
+    )
     assert batch["gt_match_src"].dtype == torch.int64 and batch["T_gt"].shape == (4, 4, 4)
     assert batch["protocol"] == ["noisy"] * 4
 
@@ -353,13 +360,17 @@ def test_real_shape_pairs(data_root):
     dataset = PairDataset(shapes.val[:4], seed=0)
     for protocol in SHAPE_PROTOCOLS:
         sample = dataset[PairKey(0, 2, protocol, 1024)]
-        residuals = _residuals(sample["source_user"], sample["target_user"], sample["T_gt_user"], sample["gt_match_src"])
+        residuals = _residuals(
+            sample["source_user"], sample["target_user"], sample["T_gt_user"], sample["gt_match_src"]
+        )
         bound = 1e-9 if protocol == "clean" else NOISE_BOUND
         if protocol in RESAMPLED_PROTOCOLS:
             bound += MATCH_RADIUS_SPACINGS * _largest_spacing(shapes.val[2].astype(np.float64))
         assert residuals.max() <= bound
         expected = {"partial": 768, "resampled": 512, "resampled_partial": 384}.get(protocol, 1024)
-        assert sample["src_edges"].shape == (expected, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels)
+        assert sample["src_edges"].shape == (
+            expected, GeometryConfig().umbrella_neighbours, GeometryConfig().edge_channels
+        )
 
 
 def test_scan_shapes_drawn_by_class_weight_deterministically():
@@ -368,7 +379,9 @@ def test_scan_shapes_drawn_by_class_weight_deterministically():
     and an unknown weighting is refused by name."""
     from training.data import DenseShapes
 
-    names = [f"airplane_{i:04d}" for i in range(16)] + ["bench_0001", "bench_0002", "bench_0003", "bench_0004", "lamp_0001"]
+    names = [f"airplane_{i:04d}" for i in range(16)] + [
+        "bench_0001", "bench_0002", "bench_0003", "bench_0004", "lamp_0001"
+    ]
     dense = DenseShapes(np.zeros((len(names), 4, 3), np.float32), np.zeros((len(names), 4, 3), np.float32), names)
     weights = dense.draw_weights("sqrt-class")
     classes = np.array(dense.class_names)
@@ -384,7 +397,9 @@ def test_scan_shapes_drawn_by_class_weight_deterministically():
     drawn = np.array([weighted.scan_shape(key, words) for key, words in keys])
     assert np.array_equal(drawn, [weighted.scan_shape(key, words) for key, words in keys])
     assert abs(np.mean(classes[drawn] == "airplane") - 4 / 7) < 0.06
-    assert [uniform.scan_shape(key, words) for key, words in keys[:5]] == [key.index % len(names) for key, _ in keys[:5]]
+    assert [uniform.scan_shape(key, words) for key, words in keys[:5]] == [
+        key.index % len(names) for key, _ in keys[:5]
+    ]
     with pytest.raises(ValueError, match="weighting"):
         PairDataset(shapes, dense=dense, scan_shape_weighting="balanced")
 

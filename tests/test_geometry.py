@@ -241,7 +241,9 @@ def test_geometry_neighbours_are_the_nearest_in_order():
     geometry = compute_geometry(points)
     squared = np.sum((points[:, None] - points[None]) ** 2, axis=2)
     np.fill_diagonal(squared, np.inf)
-    np.testing.assert_array_equal(geometry.neighbour_index, np.argsort(squared, axis=1)[:, : GeometryConfig().umbrella_neighbours])
+    np.testing.assert_array_equal(
+        geometry.neighbour_index, np.argsort(squared, axis=1)[:, : GeometryConfig().umbrella_neighbours]
+    )
     sizes = geometry.pca.neighbour_count
     np.fill_diagonal(squared, 0.0)
     within = np.sum(np.sqrt(squared) < 0.3, axis=1)

@@ -194,7 +194,8 @@ def test_v3_scores_are_invariant_to_either_cloud_moving(v3_registrar, shape):
     source = shape[rng.permutation(len(shape))[:900]]
     target = ROTATIONS["random 1"].apply(shape[rng.permutation(len(shape))[:800]])
     reference = v3_registrar.match(source, target).scores
-    for source_motion, target_motion in (("180 deg about x", "90 deg about z"), ("random 2", "180 deg about a skew axis")):
+    for source_motion, target_motion in (("180 deg about x", "90 deg about z"),
+                                         ("random 2", "180 deg about a skew axis")):
         moved = v3_registrar.match(
             _moved(source, ROTATIONS[source_motion], TRANSLATIONS[2]),
             _moved(target, ROTATIONS[target_motion], TRANSLATIONS[1]),
@@ -243,7 +244,9 @@ def _pairwise_tensors(path: Path, feeds: dict[str, np.ndarray]) -> list[tuple[st
     return [
         (name, value.shape)
         for name, value in zip(names, session.run(None, feeds), strict=True)
-        if isinstance(value, np.ndarray) and sum(size in point_counts for size in value.shape) >= 2 and name not in allowed
+        if isinstance(value, np.ndarray)
+        and sum(size in point_counts for size in value.shape) >= 2
+        and name not in allowed
     ]
 
 

@@ -890,7 +890,9 @@ def test_normals_turn_with_the_pose_and_colours_do_not():
     turned = np.stack([moved[n] for n in ("nx", "ny", "nz")], axis=1)
     assert np.allclose(turned, normals @ rotation.T, atol=1e-6)
     assert moved["nx"].dtype == np.float32
-    assert np.array_equal(moved["red"], attributes["red"]) and np.array_equal(moved["intensity"], attributes["intensity"])
+    assert np.array_equal(moved["red"], attributes["red"]) and np.array_equal(
+        moved["intensity"], attributes["intensity"]
+    )
 
 
 def test_stanford_conf_poses_overlay_two_real_scans(shared_data):

@@ -288,7 +288,9 @@ def test_laz_corrupt_chunk_tables_fail_without_crashing(tmp_path):
     header_size, offset = struct.unpack_from("<HI", data, 94)
     # The laszip VLR (the only VLR) holds the chunk size at byte 12 of its data.
     chunk_size_at = header_size + 54 + 12
-    completed = _read_in_subprocess(_corrupt(good, tmp_path / "chunk.laz", chunk_size_at, struct.pack("<I", 0x7F000000)))
+    completed = _read_in_subprocess(
+        _corrupt(good, tmp_path / "chunk.laz", chunk_size_at, struct.pack("<I", 0x7F000000))
+    )
     assert completed.returncode == 0 and "chunk size" in completed.stdout, completed.stderr
     # The chunk table (at the offset stored in the first 8 bytes of the point data) starts
     # with a version and the number of chunks.

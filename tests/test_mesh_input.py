@@ -11,9 +11,9 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
-import logdesc_rt
-from logdesc_rt.errors import PointCloudFileError
-from logdesc_rt.io import (
+import logdesc_rt  # noqa: E402
+from logdesc_rt.errors import PointCloudFileError  # noqa: E402
+from logdesc_rt.io import (  # noqa: E402
     DEFAULT_SURFACE_SAMPLES,
     Mesh,
     read_mesh,
@@ -21,11 +21,11 @@ from logdesc_rt.io import (
     read_registration_input,
     sample_surface,
 )
-from logdesc_rt.io.mesh import vertex_sampling_problem
-from logdesc_rt.metrics import rotation_error_deg
-from logdesc_rt.tools.cli import main
+from logdesc_rt.io.mesh import vertex_sampling_problem  # noqa: E402
+from logdesc_rt.metrics import rotation_error_deg  # noqa: E402
+from logdesc_rt.tools.cli import main  # noqa: E402
 
-from .shapes import random_rigid_transform
+from .shapes import random_rigid_transform  # noqa: E402
 
 MESH_FORMATS = (".obj", ".stl", ".ply", ".off", ".glb")
 

@@ -42,7 +42,8 @@ from .shapes import fibonacci_sphere  # noqa: E402
 
 TINY = PRESETS["tiny"]
 K = 8
-GEOMETRY = GeometryConfig(edge_layout="paper", normals="umbrella", umbrella_neighbours=K, pca_max_neighbours=32)  # the tiny preset is the paper net
+# the tiny preset is the paper net
+GEOMETRY = GeometryConfig(edge_layout="paper", normals="umbrella", umbrella_neighbours=K, pca_max_neighbours=32)
 
 
 def _random_inputs(generator: torch.Generator, batch: int, count: int, k: int = K, channels: int = 15):

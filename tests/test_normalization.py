@@ -30,7 +30,8 @@ def test_pose_in_network_frame_maps_back_exactly_to_user_frame():
     network_target = normalization.target_to_network(target)
     # Both clouds are centred and the larger fits the unit sphere exactly.
     assert np.allclose(network_target.mean(0), 0.0, atol=1e-12)
-    radii = [np.linalg.norm(c - c.mean(0), axis=1).max() for c in (normalization.source_to_network(source), network_target)]
+    radii = [np.linalg.norm(c - c.mean(0), axis=1).max()
+             for c in (normalization.source_to_network(source), network_target)]
     assert np.isclose(max(radii), 1.0)
     network_pose = kabsch(network_source, network_target)
     recovered = normalization.pose_to_user_frame(network_pose)

@@ -138,7 +138,9 @@ def test_batched_solver_is_each_problem_alone_and_its_degeneracy_test_optional()
     for problem in range(3):
         assert np.allclose(rotations[problem], truths[problem][:3, :3], atol=1e-12)
         assert np.allclose(translations[problem], truths[problem][:3, 3], atol=1e-12)
-        alone = solve_rigid_batch(source[problem:problem + 1], target[problem:problem + 1], weights[problem:problem + 1])
+        alone = solve_rigid_batch(
+            source[problem:problem + 1], target[problem:problem + 1], weights[problem:problem + 1]
+        )
         assert np.allclose(alone[0][0], rotations[problem], rtol=0, atol=1e-14)
         assert np.allclose(alone[1][0], translations[problem], rtol=0, atol=1e-14)
     unchecked = solve_rigid_batch(source, target, weights, check_degenerate=False)

@@ -401,7 +401,9 @@ def test_after_icp_the_fitness_is_icps_own_final_evaluation_on_the_same_subset(r
     assert (result.fitness, result.inlier_rmse) == (expected.fitness, expected.inlier_rmse)
 
 
-def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_with_the_dynamic_ones(registrar, demo_pair):
+def test_the_networks_at_the_working_size_run_fixed_size_sessions_that_agree_with_the_dynamic_ones(
+    registrar, demo_pair
+):
     """Clouds cut to the working size reach the networks through sessions with fixed point axes
     (OnnxNetwork.fixed_points); their outputs are the dynamic graphs' within float32 rounding,
     and any other size runs the dynamic sessions."""

@@ -364,7 +364,8 @@ def test_a_weights_only_checkpoint_keeps_the_model_and_resumes_its_schedule(trai
 
 def test_weights_only_refuses_to_overwrite_its_input(trained):
     result = subprocess.run(
-        [sys.executable, "-m", "training.checkpoint", "weights-only", str(trained / "last.pt"), str(trained / "last.pt")],
+        [sys.executable, "-m", "training.checkpoint", "weights-only", str(trained / "last.pt"),
+         str(trained / "last.pt")],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
     )
     assert result.returncode != 0 and "must differ" in result.stderr

@@ -18,8 +18,8 @@ from logdesc_rt.config import (
     VerificationConfig,
 )
 from logdesc_rt.demo import make_demo_pair
-from logdesc_rt.metrics import rotation_error_deg
 from logdesc_rt.matching import mutual_nearest_descriptors
+from logdesc_rt.metrics import rotation_error_deg
 from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses, unexplained_candidate_poses
 from logdesc_rt.verification import PoseVerifier, logistic_confidence
 
@@ -447,7 +447,9 @@ def test_the_second_consensus_finds_the_pose_the_outvoted_matches_agree_on():
     confidences = np.full(300, 0.5)
     first = dict(candidate_poses(points, target, confidences))
     assert rotation_error_deg(first["ransac"][:3, :3], wrong[:3, :3]) < 1e-3
-    second = dict(unexplained_candidate_poses(points, target, confidences, first["ransac"], 0.08, estimators=("ransac",)))
+    second = dict(
+        unexplained_candidate_poses(points, target, confidences, first["ransac"], 0.08, estimators=("ransac",))
+    )
     assert set(second) == {"ransac"}
     assert rotation_error_deg(second["ransac"][:3, :3], truth[:3, :3]) < 1e-3
     # A pose that explains all but two matches leaves nothing to fit.

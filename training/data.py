@@ -39,6 +39,7 @@ import numpy as np
 from logdesc_rt.config import GeometryConfig, NormalizationConfig
 from logdesc_rt.errors import InvalidPointCloudError
 from logdesc_rt.geometry import compute_geometry
+
 # The pair protocol lives with the runtime, which the demo, tests and benchmarks share.
 from logdesc_rt.scan_simulation import SCAN_PROTOCOL, make_scan_pair
 from logdesc_rt.synthetic import PAPER_PROTOCOLS, SOURCE_POINTS, Pair, make_pair
@@ -700,9 +701,9 @@ class TrainBatchSampler(_TorchSampler):
     def __iter__(self) -> Iterator[list[PairKey]]:
         step = self.start_step
         while True:
-            epoch, batch = divmod(step, self.batches_per_epoch)
+            epoch, first_batch = divmod(step, self.batches_per_epoch)
             order, uniforms = self.epoch_plan(epoch)
-            for batch in range(batch, self.batches_per_epoch):
+            for batch in range(first_batch, self.batches_per_epoch):
                 yield self._keys(epoch, batch, step, order, uniforms)
                 step += 1
 

@@ -495,7 +495,8 @@ def evaluate_checkpoint(
                                           any_relative_rotation=any_relative_rotation)
     keys = evaluation_keys(len(dataset), protocols, pairs)
     matching = MatchingConfig(
-        sinkhorn_iterations=int(sinkhorn_iterations or model.config.sinkhorn_iterations), match_threshold=match_threshold
+        sinkhorn_iterations=int(sinkhorn_iterations or model.config.sinkhorn_iterations),
+        match_threshold=match_threshold,
     )
     config = evaluation_config(matching, estimator)
     start = time.perf_counter()

@@ -89,7 +89,9 @@ class LoGDescMatcher(nn.Module):
         if self.config.architecture == "invariant":
             if points_src is None or points_tgt is None:
                 raise ValueError("the invariant transformer needs the positions")
-            final_src, final_tgt = self.transformer(desc_src, desc_tgt, normals_src, normals_tgt, points_src, points_tgt)
+            final_src, final_tgt = self.transformer(
+                desc_src, desc_tgt, normals_src, normals_tgt, points_src, points_tgt
+            )
         else:
             final_src, final_tgt = self.transformer(desc_src, desc_tgt, normals_src, normals_tgt)
         return final_src @ final_tgt.transpose(1, 2) / math.sqrt(self.config.descriptor_dim)

@@ -29,7 +29,10 @@ def pack(out_dir: Path, points: int, decimals: int | None = None) -> None:
         target.mkdir(parents=True, exist_ok=True)
         (target / "shape_names.txt").write_text((source / "shape_names.txt").read_text())
         (target / "train_files.txt").write_text("ply_data_train0.h5\n")
-        with h5py.File(source / "ply_data_train0.h5", "r") as read, h5py.File(target / "ply_data_train0.h5", "w") as write:
+        with (
+            h5py.File(source / "ply_data_train0.h5", "r") as read,
+            h5py.File(target / "ply_data_train0.h5", "w") as write,
+        ):
             lossy = {} if decimals is None else {"scaleoffset": decimals}
             write.create_dataset(
                 "data", data=read["data"][:, :points], shuffle=True, compression="gzip", compression_opts=9, **lossy
@@ -43,6 +46,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--points", type=int, default=1024)
-    parser.add_argument("--decimals", type=int, default=None, help="scale-offset filter digits (lossy; default lossless)")
+    parser.add_argument("--decimals", type=int, default=None,
+                        help="scale-offset filter digits (lossy; default lossless)")
     args = parser.parse_args()
     pack(args.out_dir, args.points, args.decimals)

@@ -76,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         outputs = model(*(batch[name] for name in INPUT_NAMES))
         loss = assignment_nll(outputs["log_assignment"], batch["gt_match_src"], batch["gt_match_tgt"])
-        loss = loss + 0.1 * descriptor_infonce(outputs["descriptors_src"], outputs["descriptors_tgt"], batch["gt_match_src"])
+        loss = loss + 0.1 * descriptor_infonce(
+            outputs["descriptors_src"], outputs["descriptors_tgt"], batch["gt_match_src"]
+        )
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

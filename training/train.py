@@ -68,6 +68,7 @@ from training.data import (
     SCAN_PROTOCOL,
     SCAN_SHAPE_WEIGHTINGS,
     SOURCE_POINTS,
+    SPLITS,
     PairDataset,
     ProtocolSchedule,
     TrainBatchSampler,
@@ -75,11 +76,11 @@ from training.data import (
     load_dense_shapes,
     load_training_sources,
     parse_protocol_mix,
-    SPLITS,
     run_split,
     validation_keys,
 )
 from training.evaluate import evaluation_config, register_scored_batch
+from training.geometry_torch import invariant_geometry
 from training.losses import INFONCE_TEMPERATURE, assignment_distillation, assignment_nll, descriptor_infonce
 from training.model import LoGDescMatcher
 from training.run_state import (
@@ -93,7 +94,6 @@ from training.run_state import (
     seed_everything,
     truncate_log,
 )
-from training.geometry_torch import invariant_geometry
 from training.sinkhorn import log_optimal_transport
 
 DEFAULT_LR = {"paper": 1e-4, "small": 1e-3, "tiny": 1e-3}
@@ -245,7 +245,9 @@ def to_device(batch: dict, device: torch.device, geometry: GeometryConfig | None
         if geometry is None:
             raise ValueError("a batch without geometry needs the geometry config")
         for prefix in ("src", "tgt"):
-            batch[f"{prefix}_edges"], batch[f"{prefix}_normals"] = invariant_geometry(batch[f"{prefix}_points"], geometry)
+            batch[f"{prefix}_edges"], batch[f"{prefix}_normals"] = invariant_geometry(
+                batch[f"{prefix}_points"], geometry
+            )
     return batch
 
 
@@ -312,7 +314,9 @@ def validate(model, loader, device, args, stop: StopFlag, geometry: GeometryConf
             count = log_assignment.shape[0]
             losses.append((assignment_nll(log_assignment, batch["gt_match_src"], batch["gt_match_tgt"]).item(), count))
             gt_src = batch["gt_match_src"].cpu().numpy()
-            for row, result, _ in register_scored_batch(outputs["scores"].float().cpu().numpy(), batch, dustbin, config):
+            for row, result, _ in register_scored_batch(
+                outputs["scores"].float().cpu().numpy(), batch, dustbin, config
+            ):
                 predicted = correspondences_as_array(result.correspondences, len(gt_src[row]))
                 true_pose = batch["T_gt_user"][row].cpu().numpy()
                 per_pair.append({
@@ -430,7 +434,9 @@ class TrainingRun:
     def save(self, name: str = "last.pt") -> None:
         """Write a resumable checkpoint (atomically) into ``--out``."""
         progress = self.progress
-        snapshot = Progress(progress.step, progress.pairs_seen, self.wall_time(), progress.best_metric, progress.best_step)
+        snapshot = Progress(
+            progress.step, progress.pairs_seen, self.wall_time(), progress.best_metric, progress.best_step
+        )
         atomic_torch_save(
             checkpoint_dict(self.model, self.optimizer, self.scheduler, snapshot, self.args, self.model.config),
             self.args.out / name,

@@ -19,9 +19,9 @@ from .invariant_features import (
     invariant_edge_features,
     invariant_edge_tensor,
 )
+from .kernels import neighbourhoods
 from .neighbours import drop_self, knn_excluding_self, nearest_neighbours
 from .normals import umbrella_normals
-from .kernels import neighbourhoods
 from .pca import PcaFeatures, pca_features, pca_from_covariance
 
 __all__ = [

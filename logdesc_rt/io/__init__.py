@@ -202,8 +202,8 @@ def write_point_cloud(path: str | os.PathLike, points, attributes: dict[str, np.
     """Write an (N, 3) point cloud; the format follows the suffix (:data:`SUPPORTED_SUFFIXES`).
 
     Every format but LAS/LAZ and E57 stores float64 values exactly (LAS: within 2.5e-9 of the
-    cloud's extent, E57: 6e-8; :mod:`logdesc_rt.io.las`, :mod:`logdesc_rt.io.e57`): PLY as binary little-endian ``double``
-    x, y, z (CloudCompare, MeshLab and Open3D read it), NPY as a float64 (N, 3) array, and
+    cloud's extent, E57: 6e-8; :mod:`logdesc_rt.io.las`, :mod:`logdesc_rt.io.e57`): PLY as binary little-endian
+    ``double`` x, y, z (CloudCompare, MeshLab and Open3D read it), NPY as a float64 (N, 3) array, and
     the text formats (PCD ascii, XYZ/TXT/CSV, OFF) with the shortest decimal that reads
     back to the same float64. A CSV file gets an ``x,y,z`` header line. An existing file
     is overwritten.
@@ -305,8 +305,8 @@ def input_points(cloud, *, working_size: int = DEFAULT_WORKING_SIZE, notify: Cal
 def check_format_available(path: str | os.PathLike) -> None:
     """Raise :class:`PointCloudFileError` unless ``path``'s format can be read and written here.
 
-    Checks the suffix, for meshes that trimesh is installed, and for LAS/LAZ/E57 that their optional library is installed (the
-    message names the extra to install). Reads nothing: for checks before long work.
+    Checks the suffix, for meshes that trimesh is installed, and for LAS/LAZ/E57 that their optional library is
+    installed (the message names the extra to install). Reads nothing: for checks before long work.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -354,7 +354,9 @@ def _check_attributes(attributes: dict, count: int) -> dict[str, np.ndarray]:
         if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name) or name in ("x", "y", "z"):
             raise ValueError(f"attribute name {name!r}: expected an identifier other than x, y, z")
         array = np.asarray(values)
-        if array.shape != (count,) or not (np.issubdtype(array.dtype, np.number) and not np.issubdtype(array.dtype, np.complexfloating)):
+        if array.shape != (count,) or not (
+            np.issubdtype(array.dtype, np.number) and not np.issubdtype(array.dtype, np.complexfloating)
+        ):
             raise ValueError(f"attribute {name!r}: expected ({count},) real numbers, got {array.dtype} {array.shape}")
         checked[name] = array
     return checked

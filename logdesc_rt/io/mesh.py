@@ -99,7 +99,9 @@ class Mesh:
         """Write vertices and triangles (:data:`MESH_WRITE_SUFFIXES`, by suffix); vertex order kept."""
         path = Path(path)
         if path.suffix.lower() not in MESH_WRITE_SUFFIXES:
-            raise file_error(path, f"cannot write a mesh as {path.suffix!r}; mesh formats: {', '.join(MESH_WRITE_SUFFIXES)}")
+            raise file_error(
+                path, f"cannot write a mesh as {path.suffix!r}; mesh formats: {', '.join(MESH_WRITE_SUFFIXES)}"
+            )
         trimesh = _trimesh(path)
         try:
             self._trimesh(trimesh).export(path)
@@ -206,7 +208,9 @@ def vertex_sampling_problem(mesh: Mesh, working_size: int) -> str | None:
     used = np.unique(mesh.faces)
     if len(used) < working_size:
         return f"only {len(used)} vertices on its faces, fewer than the working size of {working_size} points"
-    share = np.bincount(mesh.faces.ravel(), weights=np.repeat(mesh.triangle_areas / 3.0, 3), minlength=len(mesh.vertices))
+    share = np.bincount(
+        mesh.faces.ravel(), weights=np.repeat(mesh.triangle_areas / 3.0, 3), minlength=len(mesh.vertices)
+    )
     share = np.sort(share[used])[::-1]
     top = max(1, int(np.ceil(UNEVEN_TOP_VERTICES * len(share))))
     carried = float(share[:top].sum() / share.sum())

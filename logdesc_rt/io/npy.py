@@ -8,6 +8,7 @@ import numpy as np
 
 from ._common import file_error
 
+
 def read(path: Path) -> np.ndarray:
     """First three columns of an (N, >=3) array: (N, 3) in the file's dtype."""
     # Memory-mapping checks the header's shape against the file size before anything is

@@ -250,7 +250,9 @@ def write(path: Path, points: np.ndarray) -> None:
 def write_with_attributes(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
     """ascii PCD: x y z as F 8, float attributes as F 8, integer ones as I/U 8."""
     names = ["x", "y", "z", *attributes]
-    types = ["F", "F", "F"] + ["F" if v.dtype.kind == "f" else ("U" if v.dtype.kind == "u" else "I") for v in attributes.values()]
+    types = ["F", "F", "F"] + [
+        "F" if v.dtype.kind == "f" else ("U" if v.dtype.kind == "u" else "I") for v in attributes.values()
+    ]
     count = len(points)
     header = (
         "# .PCD v0.7 - Point Cloud Data file format (written by logdesc-rt)\n"

@@ -31,11 +31,11 @@ from ..sampling import _farthest_point_indices_from, _power_of_two_scale
 from .svd import (
     PoseEstimate,
     correspondence_residuals_squared,
-    transformation_inliers,
     refine_on_inliers,
     rigid_transform_svd,
     solve_rigid_batch,
     to_homogeneous,
+    transformation_inliers,
     validate_correspondences,
     validate_weights,
 )

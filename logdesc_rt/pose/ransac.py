@@ -18,11 +18,11 @@ from ..errors import DegenerateGeometryError
 from ..validation import COLLINEAR_RELATIVE_TOLERANCE
 from .svd import (
     PoseEstimate,
-    transformation_inliers,
-    refine_on_inliers,
     correspondence_residuals_squared,
+    refine_on_inliers,
     solve_rigid_batch,
     to_homogeneous,
+    transformation_inliers,
     validate_correspondences,
 )
 

@@ -414,7 +414,9 @@ def _check_backend(args) -> None:
         try:
             import ray  # noqa: F401
         except ImportError as error:
-            raise ValueError('--backend ray needs Ray, which is not installed: pip install "logdesc-rt[ray]"') from error
+            raise ValueError(
+                '--backend ray needs Ray, which is not installed: pip install "logdesc-rt[ray]"'
+            ) from error
     elif args.address is not None:
         raise ValueError("--address is for --backend ray only")
 
@@ -455,7 +457,9 @@ def read_pairs_csv(path: Path) -> list[tuple[str, str, str]]:
     if "source" in first and "target" in first:
         unknown = [cell for cell in first if cell not in columns]
         if unknown or len(set(first)) != len(first):
-            raise ValueError(f"pairs CSV {path}: header {rows[0][1]} must name source, target and optionally id, once each")
+            raise ValueError(
+                f"pairs CSV {path}: header {rows[0][1]} must name source, target and optionally id, once each"
+            )
         columns = {name: first.index(name) for name in columns if name in first}
         rows = rows[1:]
         if not rows:
@@ -664,7 +668,8 @@ def _add_runtime_options(parser: argparse.ArgumentParser, threads: bool = True) 
     if threads:
         parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--max-points", type=int, default=None,
-                        help=f"working size per cloud for the networks (default: the model's, {DEFAULT_WORKING_SIZE} for "
+                        help="working size per cloud for the networks "
+                             f"(default: the model's, {DEFAULT_WORKING_SIZE} for "
                              "the bundled one); larger clouds are subsampled; memory grows with its square")
 
 
@@ -673,7 +678,8 @@ def _add_registration_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refine", choices=("none", *REFINEMENT_METHODS), default=None,
                         help="ICP on the full clouds after the learned pose (default: none)")
     parser.add_argument("--max-correspondence-distance", type=float, default=None, metavar="D",
-                        help="for ICP, fitness and inlier RMSE, in the clouds' unit (default: 5%% of the larger radius)")
+                        help="for ICP, fitness and inlier RMSE, in the clouds' unit "
+                             "(default: 5%% of the larger radius)")
     parser.add_argument("--seed", type=int, default=None,
                         help="seeds every random choice (FSR, RANSAC, verification subsets); same input and seed, "
                              "same output (default 0)")

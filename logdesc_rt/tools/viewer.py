@@ -197,7 +197,8 @@ def write_alignment_view(
             marker={"size": _MARKER_SIZE, "color": _SCAN_PALETTE[order % len(_SCAN_PALETTE)]},
         ))
     for kept, colour in ((True, "#2ca02c"), (False, "#d62728")):
-        edges = [edge for edge in result.edges if edge.kept == kept and edge.first in centres and edge.second in centres]
+        edges = [edge for edge in result.edges
+                 if edge.kept == kept and edge.first in centres and edge.second in centres]
         if edges:
             starts = np.array([centres[edge.first] for edge in edges])
             ends = np.array([centres[edge.second] for edge in edges])
@@ -245,5 +246,6 @@ def _layout(figure, title: str, colour: str, views: dict[str, list[bool]] | None
 def _write(figure, path: str | Path) -> Path:
     path = Path(path)
     # include_plotlyjs=True embeds plotly.js: the page needs no network when it opens.
-    figure.write_html(path, include_plotlyjs=True, full_html=True, config={"displaylogo": False, "responsive": True}, default_height="96vh")
+    figure.write_html(path, include_plotlyjs=True, full_html=True,
+                      config={"displaylogo": False, "responsive": True}, default_height="96vh")
     return path
