@@ -138,3 +138,40 @@ def assignment_distillation(log_assignment: torch.Tensor, teacher_log_assignment
     rows = pointwise[:, :-1, :].sum(dim=2).mean(dim=1)  # (B,) over the N real rows
     columns = pointwise[:, :, :-1].sum(dim=1).mean(dim=1)  # (B,) over the M real columns
     return (0.5 * (rows + columns)).mean()
+
+
+def soft_correspondence_distance(
+    log_assignment: torch.Tensor,
+    source_points: torch.Tensor,
+    target_points: torch.Tensor,
+    true_pose: torch.Tensor,
+    gt_match_src: torch.Tensor,
+) -> torch.Tensor:
+    """Mean distance between each matched source point's true position in the target frame and
+    the Sinkhorn plan's mean of the target points for it.
+
+    For source point i with a counterpart (``gt_match_src[i] >= 0``), the plan's row over the M
+    real targets, normalised, weights the target points: y_hat_i = sum_j P_ij y_j / sum_j P_ij.
+    The term is |y_hat_i - (R x_i + t)|, averaged over those points and then over the batch.
+    Where :func:`assignment_nll` scores only the named target point, this charges the plan by
+    how far its mass lies from the truth: mass on a neighbour of the true partner costs a
+    spacing, a confusion across the object costs its distance.
+
+    Args:
+        log_assignment: (B, N + 1, M + 1) from :func:`training.sinkhorn.log_optimal_transport`.
+        source_points: (B, N, 3), target_points: (B, M, 3), network units.
+        true_pose: (B, 4, 4) the true source -> target pose, network frame.
+        gt_match_src: (B, N) int64 in [-2, M); only points with a counterpart count.
+
+    Returns:
+        Scalar, network units; 0 for a batch without a labelled counterpart.
+    """
+    rows, cols = log_assignment.shape[1] - 1, log_assignment.shape[2] - 1
+    plan = log_assignment[:, :rows, :cols].float().exp()  # (B, N, M)
+    row_mass = plan.sum(dim=2, keepdim=True).clamp(min=1e-12)
+    expected_target = plan @ target_points.float() / row_mass  # (B, N, 3)
+    rotation, translation = true_pose[:, :3, :3].float(), true_pose[:, :3, 3].float()
+    truth = source_points.float() @ rotation.transpose(1, 2) + translation[:, None, :]
+    distance = (expected_target - truth).norm(dim=2)
+    matched = (gt_match_src >= 0).to(distance.dtype)
+    return (distance * matched).sum() / matched.sum().clamp(min=1.0)

@@ -12,7 +12,9 @@ Loss: the negative log-likelihood of the ground-truth assignment in the Sinkhorn
 (:func:`training.losses.assignment_nll`) plus ``--aux-descriptor-loss-weight`` x an InfoNCE
 loss on the pre-transformer descriptors; with ``--distill-from`` a frozen teacher network runs on
 every batch and ``--distill-weight`` x the KL divergence from its Sinkhorn assignment to the
-student's is added (:func:`training.losses.assignment_distillation`).
+student's is added (:func:`training.losses.assignment_distillation`); with
+``--soft-correspondence-weight`` W, W x the distance from the plan's mean target point to each
+matched source point's true position (:func:`training.losses.soft_correspondence_distance`).
 Optimiser: Adam, linear warm-up, then cosine (to
 ``--min-lr-ratio`` x lr at ``--decay-steps``, default ``--max-steps``; ``--cycle-start`` starts
 a warm restart) or constant.
@@ -81,7 +83,13 @@ from training.data import (
 )
 from training.evaluate import evaluation_config, register_scored_batch
 from training.geometry_torch import invariant_geometry
-from training.losses import INFONCE_TEMPERATURE, assignment_distillation, assignment_nll, descriptor_infonce
+from training.losses import (
+    INFONCE_TEMPERATURE,
+    assignment_distillation,
+    assignment_nll,
+    descriptor_infonce,
+    soft_correspondence_distance,
+)
 from training.model import LoGDescMatcher
 from training.run_state import (
     JsonlLog,
@@ -170,6 +178,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "assignment the model learns to reproduce beside the task loss")
     optim.add_argument("--distill-weight", type=float, default=1.0,
                        help="weight of the distillation term (with --distill-from)")
+    optim.add_argument("--soft-correspondence-weight", type=float, default=0.0,
+                       help="weight of the soft correspondence distance (network units): how far the Sinkhorn "
+                            "plan's mean target point lies from each matched source point's true position")
 
     data = parser.add_argument_group("data")
     data.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
@@ -280,6 +291,11 @@ def loss_terms(outputs: dict, batch: dict, args, teacher_outputs: dict | None = 
     if teacher_outputs is not None:
         terms["distill"] = assignment_distillation(log_assignment, teacher_outputs["log_assignment"].float())
         loss = loss + args.distill_weight * terms["distill"]
+    if args.soft_correspondence_weight > 0:
+        terms["soft_distance"] = soft_correspondence_distance(
+            log_assignment, batch["src_points"], batch["tgt_points"], batch["T_gt"], gt_src
+        )
+        loss = loss + args.soft_correspondence_weight * terms["soft_distance"]
     if args.aux_descriptor_loss_weight > 0:
         terms["infonce"] = descriptor_infonce(
             outputs["descriptors_src"].float(), outputs["descriptors_tgt"].float(), gt_src,
