@@ -657,3 +657,50 @@ def test_assignment_distillation_is_zero_on_the_teachers_plan_and_pulls_towards_
     assert float(assignment_distillation(log_optimal_transport(stepped, dustbin, 50), teacher)) < loss.item()
     with pytest.raises(ValueError, match="differ"):
         assignment_distillation(teacher[:, :5], teacher)
+
+
+def test_soft_correspondence_distance_measures_the_plans_miss_in_network_units():
+    """Zero when each matched source point's plan row sits on its true partner; the mass put on
+    a wrong target costs that target's distance from the truth (so a far confusion costs more
+    than a near one); unmatched and ignored sources add nothing; a step on the scores lowers it."""
+    import torch
+
+    from training.losses import soft_correspondence_distance
+    from training.sinkhorn import log_optimal_transport
+
+    generator = torch.Generator().manual_seed(0)
+    source = torch.randn(1, 6, 3, generator=generator)
+    pose = torch.eye(4)[None].clone()
+    pose[0, :3, 3] = torch.tensor([0.5, -0.2, 0.1])
+    target = source + pose[0, :3, 3]  # target j is source j moved
+    gt = torch.tensor([[0, 1, 2, 3, -1, -2]])  # 4 counterparts, one unmatched, one ignored
+
+    def plan_log(rows: list[list[float]]) -> torch.Tensor:
+        """A (1, 7, 7) log-plan whose real block is ``rows`` (the dustbins get the remaining mass)."""
+        plan = torch.full((1, 7, 7), 1e-9)
+        plan[0, :6, :6] = torch.tensor(rows) + 1e-9
+        return plan.log()
+
+    exact = torch.eye(6).tolist()
+    def distance(log_plan: torch.Tensor) -> float:
+        return float(soft_correspondence_distance(log_plan, source, target, pose, gt))
+
+    assert distance(plan_log(exact)) == pytest.approx(0, abs=1e-6)
+    # Sources 4 (unmatched) and 5 (ignored) may point anywhere without cost.
+    scattered = [row[:] for row in exact]
+    scattered[4], scattered[5] = [1.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1.0]
+    assert distance(plan_log(scattered)) == pytest.approx(0, abs=1e-6)
+    # Half of source 0's mass on target 1: a quarter (1 of 4 matched points) of half that distance.
+    split = [row[:] for row in exact]
+    split[0] = [0.5, 0.5, 0, 0, 0, 0]
+    expected = 0.5 * float((target[0, 1] - target[0, 0]).norm()) / 4
+    assert distance(plan_log(split)) == pytest.approx(expected, rel=1e-4)
+
+    scores = torch.randn(1, 6, 6, generator=generator).requires_grad_(True)
+    dustbin = torch.tensor(1.0)
+    loss = soft_correspondence_distance(log_optimal_transport(scores, dustbin, 50), source, target, pose, gt)
+    assert loss.item() > 0.05
+    loss.backward()
+    with torch.no_grad():
+        stepped = scores - 2.0 * scores.grad
+    assert distance(log_optimal_transport(stepped, dustbin, 50)) < loss.item()
