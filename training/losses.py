@@ -152,7 +152,7 @@ def soft_correspondence_distance(
 
     For source point i with a counterpart (``gt_match_src[i] >= 0``), the plan's row over the M
     real targets, normalised, weights the target points: y_hat_i = sum_j P_ij y_j / sum_j P_ij.
-    The term is |y_hat_i - (R x_i + t)|, averaged over those points and then over the batch.
+    The term is |y_hat_i - (R x_i + t)|, averaged over all such points of the batch.
     Where :func:`assignment_nll` scores only the named target point, this charges the plan by
     how far its mass lies from the truth: mass on a neighbour of the true partner costs a
     spacing, a confusion across the object costs its distance.
