@@ -1,6 +1,6 @@
 """End-to-end time and peak memory on large clouds: a real 40k x 40k scan pair, 120k x 120k and 300k x 300k pairs.
 
-    python benchmarks/large_clouds.py [--threads 2] [--model-dir DIR] [--stem large_clouds] [--no-open3d]
+    python benchmarks/large_clouds.py [--threads 2] [--rounds 3] [--model-dir DIR] [--stem large_clouds] [--no-open3d]
 
 Cases, each run in a fresh process (so that peak resident memory, ``ru_maxrss``, is the case's
 own), with and without point-to-plane ICP on the full clouds. Each process registers the small
@@ -23,6 +23,11 @@ clouds voxel-downsampled (2.5 % of the target's radius), normals and FPFH on the
 100,000 iterations, confidence 0.999), then point-to-plane ICP on the full clouds (normals of
 the full target from its 30 nearest within 2x the voxel) at the correspondence distance
 ``register(refine=...)`` uses, 5 % of the radius, 30 iterations. Its time includes all of it.
+
+With ``--rounds N`` every case runs N times, Open3D and logdesc-rt alternating within each
+round, so that a drift of the machine's speed reaches both alike: each row is the round of median
+time (its ``rounds_s`` lists all N), and each Open3D row's ratio is the median of the N rounds'
+own ratios (``ratio_rounds``).
 
 Quiet machine wanted: nothing else running. Writes benchmarks/results/<stem>.{md,json}.
 """
@@ -244,19 +249,21 @@ def markdown(rows: list[dict], args, open3d_rows: list[dict] | None = None, plac
             "Voxel FPFH + RANSAC, then point-to-plane ICP on the full clouds (module docstring), each case in "
             "its own fresh process with OMP_NUM_THREADS = --threads. ratio = Open3D's time / logdesc-rt's total "
             "on the same case, without ICP for the coarse row and with ICP for the refined one (> 1: logdesc-rt is "
-            "faster). Open3D's point-to-plane ICP linearises the rotation about the origin: the merged cases sit "
+            "faster; with several rounds, the median of the rounds' ratios and their range). Open3D's "
+            "point-to-plane ICP linearises the rotation about the origin: the merged cases sit "
             "1 km from it (as georeferenced scans do), where its steps go wrong.",
             "",
             "| case | method | voxel m | seconds | ratio | peak RSS MiB | rotation error deg "
             "| error at the source centroid mm |",
             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
-        ours = {(row["case"], bool(row["refine"])): row["seconds"] for row in rows}
         for row in open3d_rows:
-            key = (row["case"], row["method"].endswith("ICP"))
-            ratio = row["seconds"] / ours[key] if key in ours else float("nan")
+            ratios = row.get("ratio_rounds", [])
+            ratio = f"{float(np.median(ratios)):.2f}x" if ratios else "—"
+            if len(ratios) > 1:
+                ratio += f" ({min(ratios):.2f}-{max(ratios):.2f})"
             lines.append(
-                f"| {row['case']} | {row['method']} | {row['voxel_m']:.4f} | {row['seconds']:.2f} | {ratio:.2f}x | "
+                f"| {row['case']} | {row['method']} | {row['voxel_m']:.4f} | {row['seconds']:.2f} | {ratio} | "
                 f"{row['peak_rss_mib']:.0f} | {row['rotation_error_deg']:.2f} | "
                 f"{1e3 * row['translation_error_m']:.1f} |"
             )
@@ -267,6 +274,32 @@ def markdown(rows: list[dict], args, open3d_rows: list[dict] | None = None, plac
     return "\n".join(lines) + "\n"
 
 
+def median_rounds(round_rows: list[list[dict]], round_open3d_rows: list[list[dict]]) -> tuple[list[dict], list[dict]]:
+    """Our rows and Open3D's, each the round of median time for its case (and ICP or method),
+    with ``rounds_s`` (every round's seconds, in order); each Open3D row with ``ratio_rounds``:
+    its seconds over ours (without ICP for the coarse row, with ICP for the refined one) in the
+    same round."""
+
+    def median_row(rounds_of_one: list[dict]) -> dict:
+        seconds = [row["seconds"] for row in rounds_of_one]
+        middle = sorted(range(len(seconds)), key=seconds.__getitem__)[(len(seconds) - 1) // 2]
+        return {**rounds_of_one[middle], "rounds_s": seconds}
+
+    rows = [median_row([rows[i] for rows in round_rows]) for i in range(len(round_rows[0]))]
+    open3d_rows = []
+    for i in range(len(round_open3d_rows[0])):
+        rounds_of_one = [peers[i] for peers in round_open3d_rows]
+        row = median_row(rounds_of_one)
+        ratios = []
+        for peer, ours in zip(rounds_of_one, round_rows):
+            wanted = (peer["case"], peer["method"].endswith("ICP"))
+            match = [r["seconds"] for r in ours if (r["case"], bool(r["refine"])) == wanted]
+            if match:
+                ratios.append(peer["seconds"] / match[0])
+        open3d_rows.append({**row, "ratio_rounds": ratios})
+    return rows, open3d_rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
@@ -274,6 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stem", default="large_clouds")
     parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     parser.add_argument("--no-open3d", action="store_true", help="leave out the Open3D rows")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="run every case this many times, Open3D and ours alternating (median rows)")
     parser.add_argument("--one", nargs=2, metavar=("CASE", "REFINE"), help=argparse.SUPPRESS)  # worker mode
     args = parser.parse_args(argv)
     if args.one:
@@ -285,23 +320,30 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(json.dumps(run_case(case, None if refine == "none" else refine, args.threads, args.model_dir)))
         return 0
-    rows, open3d_rows = [], []
+    if args.rounds < 1:
+        parser.error("--rounds must be >= 1")
+    round_rows, round_open3d_rows = [], []  # per round: our rows, Open3D's rows
     environment = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-    for case in args.cases:
-        if not args.no_open3d:
-            command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, "open3d"]
-            output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
-            open3d_rows += json.loads(output.strip().splitlines()[-1])["open3d"]
-            print(f"{case} Open3D: {open3d_rows[-1]['seconds']:.2f} s, "
-                  f"{open3d_rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
-        for refine in REFINEMENTS:
-            command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, refine or "none"]
-            if args.model_dir:
-                command += ["--model-dir", args.model_dir]
-            output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
-            rows.append(json.loads(output.strip().splitlines()[-1]))
-            print(f"{case} {refine}: {rows[-1]['seconds']:.2f} s, {rows[-1]['peak_rss_mib']:.0f} MiB, "
-                  f"{rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
+    for round_index in range(args.rounds):
+        rows, open3d_rows = [], []
+        for case in args.cases:
+            if not args.no_open3d:
+                command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, "open3d"]
+                output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
+                open3d_rows += json.loads(output.strip().splitlines()[-1])["open3d"]
+                print(f"round {round_index + 1} {case} Open3D: {open3d_rows[-1]['seconds']:.2f} s, "
+                      f"{open3d_rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
+            for refine in REFINEMENTS:
+                command = [sys.executable, __file__, "--threads", str(args.threads), "--one", case, refine or "none"]
+                if args.model_dir:
+                    command += ["--model-dir", args.model_dir]
+                output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+                rows.append(json.loads(output.strip().splitlines()[-1]))
+                print(f"round {round_index + 1} {case} {refine}: {rows[-1]['seconds']:.2f} s, "
+                      f"{rows[-1]['peak_rss_mib']:.0f} MiB, {rows[-1]['rotation_error_deg']:.2f} deg", flush=True)
+        round_rows.append(rows)
+        round_open3d_rows.append(open3d_rows)
+    rows, open3d_rows = median_rounds(round_rows, round_open3d_rows)
     placement = []
     if not args.no_open3d:
         command = [sys.executable, __file__, "--one", "merged_120k", "placement"]

@@ -429,6 +429,34 @@ def test_large_cloud_cases_carry_their_true_pose(shared_data):
         assert near < 1e-3 < wrong, (case, near, wrong)  # metres
 
 
+def test_large_cloud_rounds_keep_the_median_round_and_pair_ratios_within_a_round():
+    """large_clouds.median_rounds: each row is its round of median time, with every round's
+    seconds; each Open3D row's ratios divide its time by ours in the same round (coarse by
+    coarse, ICP by ICP), never across rounds."""
+    import large_clouds
+
+    def ours(seconds, refine):
+        return {"case": "c", "refine": refine, "seconds": seconds}
+
+    def peer(seconds, method):
+        return {"case": "c", "method": method, "seconds": seconds}
+
+    round_rows = [[ours(1.0, None), ours(2.0, "point_to_plane")],
+                  [ours(3.0, None), ours(2.5, "point_to_plane")],
+                  [ours(2.0, None), ours(9.0, "point_to_plane")]]
+    round_peers = [[peer(2.0, "Open3D FPFH + RANSAC"), peer(4.0, "Open3D FPFH + RANSAC + ICP")],
+                   [peer(3.0, "Open3D FPFH + RANSAC"), peer(5.0, "Open3D FPFH + RANSAC + ICP")],
+                   [peer(6.0, "Open3D FPFH + RANSAC"), peer(9.0, "Open3D FPFH + RANSAC + ICP")]]
+    rows, peers = large_clouds.median_rounds(round_rows, round_peers)
+    assert [row["seconds"] for row in rows] == [2.0, 2.5]
+    assert rows[0]["rounds_s"] == [1.0, 3.0, 2.0]
+    assert [row["seconds"] for row in peers] == [3.0, 5.0]
+    assert peers[0]["ratio_rounds"] == pytest.approx([2.0, 1.0, 3.0])
+    assert peers[1]["ratio_rounds"] == pytest.approx([2.0, 2.0, 1.0])
+    single_rows, single_peers = large_clouds.median_rounds(round_rows[:1], round_peers[:1])
+    assert single_rows[1]["seconds"] == 2.0 and single_peers[1]["ratio_rounds"] == pytest.approx([2.0])
+
+
 def test_the_learned_methods_run_the_model_folder_they_are_given(tmp_path):
     import shutil
 
