@@ -61,7 +61,7 @@ working size: clouds larger than the model's working size ({DEFAULT_WORKING_SIZE
 bundled model) are subsampled to it (farthest-point sampling) for the networks; verification,
 ICP, fitness and --write-aligned use the full clouds. The networks' memory grows with the square
 of the working size (--max-points). --second-draw matches a pair the success flag does not claim
-again on voxel working subsets and keeps the more confident result.
+again on working subsets of the other subsampling method and keeps the more confident result.
 
 success: the pose was verified on the full clouds and the calibrated confidence reached its
 threshold (calibrated on validation pairs to be right, i.e. rotation error < 5 degrees and
