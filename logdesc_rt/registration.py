@@ -387,12 +387,11 @@ class Registrar:
         timings: dict[str, float] = {}
         with one_thread_per_caller():
             subsets = other._working_subsets(pair.source_points, pair.target_points, timings)
-            same = np.array_equal(subsets[0], pair.source_index) and np.array_equal(subsets[1], pair.target_index)
-            if not same:
-                report(f"matching again on {other_method} working subsets: the flag did not claim the first result")
-                prepared = other._prepared(pair.source_points, pair.target_points, subsets, timings)
-        if same:  # both clouds are their whole working subsets: a second draw would repeat the first
-            return first
+        if np.array_equal(subsets[0], pair.source_index) and np.array_equal(subsets[1], pair.target_index):
+            return first  # both clouds are their whole working subsets: a second draw would repeat the first
+        report(f"matching again on {other_method} working subsets: the flag did not claim the first result")
+        with one_thread_per_caller():
+            prepared = other._prepared(pair.source_points, pair.target_points, subsets, timings)
         second = register_matched(other._match_prepared(prepared), second_config, initial, report)
         kept = second if second.confidence > first.confidence else first
         stages = {stage: seconds for stage, seconds in first.timings.items() if stage != "total"}
