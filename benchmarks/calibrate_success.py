@@ -275,7 +275,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     from logdesc_rt.metrics import rotation_error_deg
     from logdesc_rt.normalization import PairNormalization
     from logdesc_rt.pose.candidates import candidate_poses, descriptor_candidate_poses
-    from logdesc_rt.pose_selection import coarse_pose, verify_candidates
+    from logdesc_rt.pose_selection import coarse_pose, pose_without_icp, verify_candidates
     from logdesc_rt.verification import PoseVerifier
 
     data = np.load(path)
@@ -321,8 +321,13 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     rows = []
     for hypothesis in verified.hypotheses:
         # What register() returns without ICP were this hypothesis chosen.
-        unrefined = coarse_pose(
-            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
+        unrefined, claimable = pose_without_icp(
+            hypothesis,
+            refit := coarse_pose(
+                hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
+            ),
+            verifier.pose_within_verified(refit, hypothesis),
+            config,
         )
         rows.append({
             "pair": f"{INIT_GROUP if with_init else path.parent.name}/{path.stem}",
@@ -333,7 +338,7 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
             "verified_right": is_right(hypothesis.verified_transformation, truth, scale),
             "verified_error_deg": float(rotation_error_deg(hypothesis.verified_transformation[:3, :3], truth[:3, :3])),
             "unrefined_right": is_right(unrefined, truth, scale),
-            "within_verified": verifier.pose_within_verified(unrefined, hypothesis),
+            "unrefined_claimable": claimable,
         })
     return rows
 
@@ -418,8 +423,9 @@ def _markdown(payload: dict, pairs_per_group: dict[str, int]) -> str:
         *(_exit_lines(config)),
         "The flag on the calibration pairs (in-sample: an optimistic estimate). `refined`: the",
         "verified (ICP-refined) pose, what `refine=...` returns; `unrefined`: what `register()`",
-        "returns without ICP (`pose_selection.coarse_pose`: the matches its verified pose explains,",
-        "re-fitted), claimed only within `same_pose_deg` of its verified pose.",
+        "returns without ICP (`pose_selection.pose_without_icp`: the matches its verified pose explains,",
+        "re-fitted, claimed within `same_pose_deg` of its verified pose; where they stray, the verified",
+        "pose if the clouds coincide there closely enough, else the re-fit, unclaimed).",
         "",
         "| mode | group | pairs | right | claimed | precision | recall | fast exits | right among them |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
@@ -604,7 +610,8 @@ def calibrate_exit(rows: list[dict], base):
     """``base`` with the fast exit's model fitted on ``rows``: a logistic over the exit
     estimator's hypothesis' own features, and the lowest threshold whose exits, on these pairs,
     are right at least EXIT_TARGET_PRECISION of the time both verified and as ``register()``
-    returns them without ICP (an exit claims the unrefined pose only within its verified pose),
+    returns them without ICP (an exit claims the unrefined pose only where
+    ``pose_selection.pose_without_icp`` allows),
     and claim no wrong real-scan pose. No exit when no threshold qualifies."""
     import dataclasses
 
@@ -622,12 +629,12 @@ def calibrate_exit(rows: list[dict], base):
     confidence = 1.0 / (1.0 + np.exp(-z))
     verified_right = labels
     unrefined_right = np.array([row["unrefined_right"] for row in candidates])
-    within = np.array([row["within_verified"] for row in candidates])
+    claimable = np.array([row["unrefined_claimable"] for row in candidates])
     real = np.array([row["group"].startswith("bunny") for row in candidates])
     threshold = 1.0
     for value in np.unique(np.round(confidence, 4)):
         claimed = confidence >= value
-        claimed_unrefined = claimed & within
+        claimed_unrefined = claimed & claimable
         if not claimed.any() or not claimed_unrefined.any():
             continue
         if (np.mean(verified_right[claimed]) >= EXIT_TARGET_PRECISION
@@ -668,8 +675,8 @@ def flag_outcomes(rows: list[dict], fitted) -> dict[str, dict]:
             "confidence": float(confidence),
             "refined_claimed": claimed,
             "refined_right": bool(row["verified_right"]),
-            # register() without ICP claims only a pose within same_pose_deg of the verified one.
-            "unrefined_claimed": claimed and bool(row["within_verified"]),
+            # register() without ICP claims only the poses pose_selection.pose_without_icp allows.
+            "unrefined_claimed": claimed and bool(row["unrefined_claimable"]),
             "unrefined_right": bool(row["unrefined_right"]),
         }
     return outcomes

@@ -12,7 +12,8 @@ pose estimators on logdesc-rt's matches see the same matches:
   candidate pose verified on the full clouds, the best kept, and the success flag; without and
   with point-to-plane ICP; ``logdesc_thorough``: ``register(..., thorough=True)``, every
   candidate verified on every pair; ``logdesc_second_draw``: ``register()`` with the second
-  draw (``SubsamplingConfig.second_draw``). Their records carry the flag
+  draw (``SubsamplingConfig.second_draw``); ``logdesc_refit_only``: ``register()`` without the
+  verified-pose fallback (``VerificationConfig.verified_fallback_rmse = 0``). Their records carry the flag
   (``flagged_success``, ``confidence``);
 - ``logdesc_desc_ransac``, ``logdesc_desc_fgr``: only the learned *descriptors* (no matcher
   transformer, no Sinkhorn), fed to Open3D's feature-matching RANSAC and FGR, as the paper's
@@ -66,12 +67,13 @@ from logdesc_rt.refinement import refine_pose as runtime_refine_pose
 
 LOGDESC_ESTIMATORS = ("fsr", "svd", "ransac")
 LOGDESC_METHODS = tuple(f"logdesc_{name}" for name in LOGDESC_ESTIMATORS)
-# method -> register()'s (refine, thorough, second draw; None: the configuration's)
+# method -> register()'s (refine, thorough, settings applied over the configuration's)
 VERIFIED_METHODS = {
-    "logdesc_auto": (None, False, None),
-    "logdesc_auto_icp": ("point_to_plane", False, None),
-    "logdesc_thorough": (None, True, None),
-    "logdesc_second_draw": (None, False, True),
+    "logdesc_auto": (None, False, {}),
+    "logdesc_auto_icp": ("point_to_plane", False, {}),
+    "logdesc_thorough": (None, True, {}),
+    "logdesc_second_draw": (None, False, {"subsampling": {"second_draw": True}}),
+    "logdesc_refit_only": (None, False, {"verification": {"verified_fallback_rmse": 0.0}}),
 }
 DESCRIPTOR_METHODS = ("logdesc_desc_ransac", "logdesc_desc_fgr")
 FPFH_METHODS = ("fpfh_ransac", "fpfh_fgr")
@@ -378,9 +380,9 @@ class MethodRunner:
                 results[name] = MethodResult(np.eye(4), match_seconds, True, pred_match)
         if "logdesc_fsr_icp" in self.methods:
             results["logdesc_fsr_icp"] = self._refined(source, target, results["logdesc_fsr"], pair.normalization.scale)
-        for name, (refine, thorough, second_draw) in VERIFIED_METHODS.items():
+        for name, (refine, thorough, settings) in VERIFIED_METHODS.items():
             if name in self.methods:
-                results[name] = self._verified(pair, refine, thorough, second_draw, seed, match_seconds, pred_match)
+                results[name] = self._verified(pair, refine, thorough, settings, seed, match_seconds, pred_match)
         if any(m in self.methods for m in DESCRIPTOR_METHODS):
             describe_seconds = sum(pair.timings[stage] for stage in ("load", "subsample", "geometry", "descriptors"))
             results.update(
@@ -398,13 +400,13 @@ class MethodRunner:
             )
         return results
 
-    def _verified(self, pair, refine, thorough, second_draw, seed, match_seconds, pred_match) -> MethodResult:
+    def _verified(self, pair, refine, thorough, settings, seed, match_seconds, pred_match) -> MethodResult:
         """register()'s pipeline from the matches: verified candidates, the flag (``thorough``:
-        every candidate verified, no fast exit; ``second_draw``: the pair matched again on other
-        working subsets when the flag does not claim the first result)."""
-        if second_draw is not None and second_draw != pair.config.subsampling.second_draw:
-            subsampling = dataclasses.replace(pair.config.subsampling, second_draw=second_draw)
-            pair = dataclasses.replace(pair, config=dataclasses.replace(pair.config, subsampling=subsampling))
+        every candidate verified, no fast exit; ``settings``: a configuration dict applied over
+        the pair's, e.g. the second draw or the verified-pose fallback)."""
+        if settings:
+            # register_matches() runs with the configuration the pair was matched with.
+            pair = dataclasses.replace(pair, config=self.registrar.resolver.given(settings, pair.config))
         start = time.perf_counter()
         # A failure is a result.
         result = self.registrar.register_matches(pair, refine=refine, seed=seed, thorough=thorough)

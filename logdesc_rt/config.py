@@ -264,6 +264,13 @@ class VerificationConfig(_DictMixin):
             twin: the error along the surface is sampling); 0: none.
         refit_point_weight: the point-to-point term's weight in those steps, relative to the
             point-to-plane term (it holds the directions a flat patch leaves free).
+        verified_fallback_rmse: where that re-fit lands farther than ``same_pose_deg`` from the
+            chosen hypothesis' verified pose, the verified pose is returned instead (with the
+            hypothesis' confidence) when the clouds coincide closely at it: its ``rmse_ratio``
+            feature (inlier RMSE over the inlier distance) below this. Dense clouds that
+            coincide make the short ICP's pose the better one; on sparse clouds of separate
+            samples its optimum is biased and the re-fit is kept, unclaimed. 0: never
+            (``benchmarks/results/verified_fallback/``).
         weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
         bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
         success_threshold: success when confidence >= this.
@@ -299,6 +306,7 @@ class VerificationConfig(_DictMixin):
     refit_spacings: float = 2.0
     refit_plane_steps: int = 3
     refit_point_weight: float = 0.1
+    verified_fallback_rmse: float = 0.5
     # A calibration belongs to a model: the one in effect is the model manifest's
     # ("runtime" -> "verification"). These defaults are the bundled model's (held equal to
     # its manifest by tests/test_verification.py), the fit of benchmarks/calibrate_success.py
@@ -392,6 +400,10 @@ class VerificationConfig(_DictMixin):
         if not 0.0 <= self.refit_point_weight < float("inf"):  # also rejects NaN
             raise ValueError(
                 f"VerificationConfig.refit_point_weight must be finite and >= 0, got {self.refit_point_weight}"
+            )
+        if not 0.0 <= self.verified_fallback_rmse < float("inf"):  # also rejects NaN
+            raise ValueError(
+                f"VerificationConfig.verified_fallback_rmse must be finite and >= 0, got {self.verified_fallback_rmse}"
             )
         if self.refine_candidates < 1:
             raise ValueError(f"VerificationConfig.refine_candidates must be >= 1, got {self.refine_candidates}")

@@ -163,8 +163,14 @@ def _verified_result(
         refined = icp_result.transformation
         with timed(timings, "verification"):
             confidence = verifier.confidence_at(refined, chosen, fast_exit=verification.fast_exit)
+    elif config.estimator == "auto":
+        pose, claimable = pose_without_icp(
+            chosen, pose, verifier.pose_within_verified(pose, chosen), config.verification
+        )
+        refined = pose
+        confidence = chosen.confidence if claimable else 0.0
     else:
-        # The returned pose comes from the matches alone: right only if it is close to the
+        # The configured estimator's pose, as it is: right only if it is close to the
         # alignment verification found.
         confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
     success = bool(confidence >= threshold)
@@ -182,6 +188,36 @@ def _verified_result(
             f"not verified: confidence {confidence:.3f} is below the success threshold {threshold:.3f}"
         ),
     )
+
+
+def pose_without_icp(
+    hypothesis: Hypothesis, refit: np.ndarray, within_verified: bool, verification: VerificationConfig
+) -> tuple[np.ndarray, bool]:
+    """The pose ``register()`` returns without ICP for the chosen hypothesis, and whether the
+    success flag may claim it (the runtime and the flag's calibration both read it here).
+
+    The matches' re-fit (:func:`coarse_pose`) where it lies within ``same_pose_deg`` of the
+    hypothesis' verified pose. Where it strays, the verified pose itself if the clouds
+    coincide closely there (its ``rmse_ratio`` below ``verification.verified_fallback_rmse``:
+    dense clouds, where the short ICP's optimum is the better pose); else the re-fit, which
+    the flag may not claim (sparse clouds of separate samples, where the ICP's optimum is
+    biased and the matches are the better evidence).
+
+    Args:
+        hypothesis: the chosen hypothesis (its verified pose and features).
+        refit: (4, 4) :func:`coarse_pose` of it, user frame.
+        within_verified: whether ``refit`` lies within ``same_pose_deg`` of the verified pose
+            (:meth:`~logdesc_rt.verification.PoseVerifier.pose_within_verified`).
+        verification: ``verified_fallback_rmse``.
+
+    Returns:
+        ((4, 4) pose, claimable).
+    """
+    if within_verified:
+        return refit, True
+    if hypothesis.features["rmse_ratio"] < verification.verified_fallback_rmse:
+        return hypothesis.verified_transformation, True
+    return refit, False
 
 
 def coarse_pose(

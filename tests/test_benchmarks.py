@@ -91,16 +91,16 @@ def test_success_by_overlap_bins_each_pair_once_and_counts_its_successes():
 
 
 def test_verified_methods_are_what_register_returns(shared_data):
-    """logdesc_auto(_icp), logdesc_thorough and logdesc_second_draw record register()'s pose and
-    flag, from the shared matches."""
+    """logdesc_auto(_icp), logdesc_thorough, logdesc_second_draw and logdesc_refit_only record
+    register()'s pose and flag with their settings, from the shared matches."""
     from logdesc_rt import Registrar
 
     pair = next(common.modelnet10_test_pairs(["partial"], count=1))
     runner = methods.MethodRunner(("logdesc_fsr", *methods.VERIFIED_METHODS))
     results = runner.run(pair.source, pair.target, seed=5)
     registrar = Registrar()
-    for name, (refine, thorough, second_draw) in methods.VERIFIED_METHODS.items():
-        config = None if second_draw is None else {"subsampling": {"second_draw": second_draw}}
+    for name, (refine, thorough, settings) in methods.VERIFIED_METHODS.items():
+        config = settings or None
         expected = registrar.register(pair.source, pair.target, refine=refine, seed=5, thorough=thorough, config=config)
         assert np.array_equal(results[name].transformation, expected.transformation)
         record = common.pair_record(pair, name, results[name])

@@ -291,7 +291,7 @@ def test_count_reads_the_chosen_hypothesis_of_each_pair():
     def row(pair, fitness, verified, unrefined, within=True):
         features = [fitness] + [0.0] * 9
         return {"pair": pair, "group": pair.split("/")[0], "features": features, "verified_right": verified,
-                "unrefined_right": unrefined, "within_verified": within}
+                "unrefined_right": unrefined, "unrefined_claimable": within}
 
     rows = {
         # chosen: the first (fitness 2, confidence 0.88), right and claimed
@@ -791,7 +791,7 @@ def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeyp
             right = bool(rng.random() < 0.6)
             features = rng.normal(size=len(calibrate_success.FEATURES)) + (1.5 if right else 0.0)
             rows.append({"pair": pair, "group": "val_scan", "features": features.tolist(), "verified_right": right,
-                         "unrefined_right": right, "within_verified": True, "estimators": ["fsr"], "refined": True})
+                         "unrefined_right": right, "unrefined_claimable": True, "estimators": ["fsr"], "refined": True})
     fitted_on: list[set[str]] = []
     real_calibrate = calibrate_success.calibrate
 
@@ -895,7 +895,7 @@ def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_pe
         features[VERIFICATION_FEATURES.index("fitness")] = fitness
         group = "bunny_unbenchmarked" if index % 50 == 0 else "val_in_range"
         rows.append({"pair": f"{group}/{index:04d}", "group": group, "estimators": ["fsr"], "refined": True,
-                     "features": features, "verified_right": right, "unrefined_right": right, "within_verified": True})
+                     "features": features, "verified_right": right, "unrefined_right": right, "unrefined_claimable": True})
     fitted = calibrate_success.calibrate_exit(rows, VerificationConfig())
     assert fitted.fast_exit and 0.0 < fitted.exit_threshold < 1.0
     outcomes = calibrate_success.flag_outcomes(rows, fitted)
