@@ -800,6 +800,7 @@ def write_calibration(model_dir: Path, fitted, settings: dict | None = None) -> 
         "refit_spacings": fitted.refit_spacings,
         "refit_plane_steps": fitted.refit_plane_steps,
         "refit_point_weight": fitted.refit_point_weight,
+        "verified_fallback_rmse": fitted.verified_fallback_rmse,
         "exit_estimator": fitted.exit_estimator,
         "exit_weights": list(fitted.exit_weights),
         "exit_bias": fitted.exit_bias,

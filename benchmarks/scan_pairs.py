@@ -196,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--split", choices=["test", "val"], default="test")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--methods", nargs="+", default=list(METHODS),
-                        choices=(*METHODS, "logdesc_thorough", "logdesc_second_draw"))
+                        choices=(*METHODS, "logdesc_thorough", "logdesc_second_draw", "logdesc_refit_only"))
     parser.add_argument("--protocol", default="scan", choices=["scan", *SHAPE_PROTOCOLS])
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--model-dir", type=Path, default=None, help="an exported model instead of the bundled one")

@@ -270,7 +270,7 @@ class VerificationConfig(_DictMixin):
             feature (inlier RMSE over the inlier distance) below this. Dense clouds that
             coincide make the short ICP's pose the better one; on sparse clouds of separate
             samples its optimum is biased and the re-fit is kept, unclaimed. 0: never
-            (``benchmarks/results/verified_fallback/``).
+            (``benchmarks/results/verified_fallback_rmse/``).
         weights: logistic coefficients, one per feature of VERIFICATION_FEATURES.
         bias: the logistic intercept: confidence = 1 / (1 + exp(-(bias + weights . features))).
         success_threshold: success when confidence >= this.

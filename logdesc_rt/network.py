@@ -132,8 +132,9 @@ class ModelManifest:
         One stored without the second look's settings was fitted without it, and runs
         without it: its ``margin`` feature never met a turn-over as a rival. One
         stored without ``descriptor_consensus`` runs without the descriptors' candidates, and
-        one without ``refit_spacings`` returns the estimator's own pose without ICP, and one
-        without ``refit_plane_steps`` returns the re-fit without its point-to-plane steps."""
+        one without ``refit_spacings`` returns the estimator's own pose without ICP, one
+        without ``refit_plane_steps`` returns the re-fit without its point-to-plane steps, and
+        one without ``verified_fallback_rmse`` never returns the verified pose in its place."""
         runtime = dict(self.runtime)
         verification = runtime.get("verification")
         if isinstance(verification, dict):
@@ -148,7 +149,7 @@ LEGACY_CANDIDATES = ("fsr", "ransac", "svd", "top_k")
 """The candidate estimators of calibrations stored without a candidate set (no "core")."""
 LEGACY_VERIFICATION_OFF = {
     "turn_over_axes": 0, "second_consensus": [], "descriptor_consensus": [], "refit_spacings": 0.0,
-    "refit_plane_steps": 0, "turn_over_spin": False, "exit_weights": [],
+    "refit_plane_steps": 0, "turn_over_spin": False, "exit_weights": [], "verified_fallback_rmse": 0.0,
 }
 """Settings a stored calibration lacks were not there when it was fitted: off (each key is
 filled in alone)."""

@@ -8,7 +8,9 @@ pose. The runtime (:meth:`Registrar.register`), training's validation and
     verification on the full clouds (:class:`PoseVerifier`: the best
     few get a short ICP, the leading one's second look adds turn-overs and a second consensus,
     each is scored, a calibrated confidence) -> the chosen pose (without ICP: its matches
-    re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`) -> optional ICP ->
+    re-fitted, point-to-point then point-to-plane, :func:`coarse_pose`; where that strays from
+    the verified pose, the verified pose if the clouds coincide there, :func:`pose_without_icp`)
+    -> optional ICP ->
     fitness / inlier RMSE against the full target (a bounded seeded source subset) -> the success flag.
 """
 

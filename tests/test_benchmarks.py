@@ -383,6 +383,29 @@ def test_the_model_id_changes_with_the_calibration_not_with_the_provenance(tmp_p
     assert common.bundled_model_id(model, without_calibration=True) != matches
 
 
+def test_the_model_id_follows_the_runtime_configuration_the_model_resolves_to(tmp_path):
+    """A runtime setting changes the id whether it comes from the manifest or the code's
+    default: a manifest that states the default resolves to the same runtime, the same id."""
+    import shutil
+
+    from logdesc_rt.config import VerificationConfig
+    from logdesc_rt.network import bundled_model_dir
+
+    model = tmp_path / "model"
+    shutil.copytree(bundled_model_dir(), model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    verification = manifest["runtime"].setdefault("verification", {})
+    verification["verified_fallback_rmse"] = VerificationConfig().verified_fallback_rmse
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model) == common.bundled_model_id()
+    verification["verified_fallback_rmse"] = 0.0
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model) != common.bundled_model_id()
+    assert common.bundled_model_id(model, without_calibration=True) == common.bundled_model_id(
+        without_calibration=True
+    )
+
+
 def test_bundled_model_id_follows_the_onnx_files(tmp_path):
     import shutil
 

@@ -493,6 +493,8 @@ def test_the_runtime_second_look_is_the_configs(registrar, demo_pair):
         ({"refit_point_weight": -0.1}, "refit_point_weight"),
         ({"refit_point_weight": float("nan")}, "refit_point_weight"),
         ({"turn_over_spin": 1}, "turn_over_spin"),
+        ({"verified_fallback_rmse": -0.1}, "verified_fallback_rmse"),
+        ({"verified_fallback_rmse": float("nan")}, "verified_fallback_rmse"),
     ],
 )
 def test_bad_second_look_settings_are_named(values, message):
@@ -555,6 +557,25 @@ def test_a_calibration_stored_before_the_coarse_refit_returns_the_estimators_pos
     (model / "manifest.json").write_text(json.dumps(manifest))
     verification = Registrar(model).config.verification
     assert verification.refit_spacings == 0.0 and verification.descriptor_consensus == ("ransac",)
+
+
+def test_a_calibration_stored_before_the_verified_fallback_runs_without_it(tmp_path):
+    """A manifest without ``verified_fallback_rmse`` (fitted when a straying re-fit was never
+    replaced) runs without the fallback and keeps every other setting; the shipped manifest
+    stores its own."""
+    import shutil
+    from pathlib import Path
+
+    import logdesc_rt
+
+    model = tmp_path / "model"
+    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    assert manifest["runtime"]["verification"]["verified_fallback_rmse"] == 0.5
+    manifest["runtime"]["verification"].pop("verified_fallback_rmse")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    verification = Registrar(model).config.verification
+    assert verification.verified_fallback_rmse == 0.0 and verification.refit_plane_steps == 3
 
 
 def test_a_calibration_stored_before_the_plane_steps_returns_the_plain_refit(tmp_path, demo_pair):
@@ -776,6 +797,46 @@ def test_register_without_icp_returns_the_coarse_pose_of_its_chosen_hypothesis(r
     assert np.array_equal(own.transformation, own.verification.best.transformation)
 
 
+def test_a_straying_refit_gives_way_to_the_verified_pose_only_where_the_clouds_coincide():
+    """pose_without_icp: the re-fit within same_pose_deg of the verified pose is returned and
+    claimable; a straying one gives way to the verified pose when the hypothesis' rmse_ratio is
+    below verified_fallback_rmse, else it is returned unclaimable."""
+    from logdesc_rt.pose_selection import pose_without_icp
+    from logdesc_rt.verification import Hypothesis
+
+    verified, refit = _rigid([0.0, 0.0, 0.1], [0.0, 0.0, 0.0]), np.eye(4)
+
+    def hypothesis(rmse_ratio: float) -> Hypothesis:
+        return Hypothesis(("fsr",), np.eye(4), verified, {"rmse_ratio": rmse_ratio}, 0.9, True)
+
+    on, off = VerificationConfig(verified_fallback_rmse=0.5), VerificationConfig(verified_fallback_rmse=0.0)
+    pose, claimable = pose_without_icp(hypothesis(0.3), refit, True, on)
+    assert pose is refit and claimable
+    pose, claimable = pose_without_icp(hypothesis(0.3), refit, False, on)
+    assert pose is verified and claimable
+    pose, claimable = pose_without_icp(hypothesis(0.6), refit, False, on)
+    assert pose is refit and not claimable
+    pose, claimable = pose_without_icp(hypothesis(0.0), refit, False, off)
+    assert pose is refit and not claimable
+
+
+def test_register_returns_the_verified_pose_where_the_refit_strays_on_clouds_that_coincide(demo_pair):
+    """With a same_pose_deg so small that every re-fit strays, register() without ICP returns
+    the chosen hypothesis' verified pose, claimed, on the demo pair (dense clouds that coincide);
+    without the fallback it returns the re-fit, unclaimed."""
+    strict = {"verification": {"same_pose_deg": 1e-6}}
+    fallback = Registrar(config=strict).register(demo_pair.source, demo_pair.target, refine=None)
+    chosen = fallback.verification.best
+    assert chosen.features["rmse_ratio"] < fallback.config.verification.verified_fallback_rmse
+    assert np.array_equal(fallback.transformation, chosen.verified_transformation)
+    assert fallback.success and fallback.confidence == chosen.confidence
+    assert rotation_error_deg(fallback.transformation[:3, :3], demo_pair.true_transformation[:3, :3]) < 2.0
+    strict["verification"]["verified_fallback_rmse"] = 0.0
+    refit_only = Registrar(config=strict).register(demo_pair.source, demo_pair.target, refine=None)
+    assert not np.array_equal(refit_only.transformation, chosen.verified_transformation)
+    assert not refit_only.success and refit_only.confidence == 0.0
+
+
 def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeypatch):
     """calibrate_success.cross_validated_outcomes: every pair is flagged once, by a calibration
     fitted without any pair of its shape (the scan group reuses shapes across pairs)."""
@@ -895,7 +956,8 @@ def test_the_exit_threshold_is_where_the_calibration_pairs_exits_are_right_99_pe
         features[VERIFICATION_FEATURES.index("fitness")] = fitness
         group = "bunny_unbenchmarked" if index % 50 == 0 else "val_in_range"
         rows.append({"pair": f"{group}/{index:04d}", "group": group, "estimators": ["fsr"], "refined": True,
-                     "features": features, "verified_right": right, "unrefined_right": right, "unrefined_claimable": True})
+                     "features": features, "verified_right": right, "unrefined_right": right,
+                     "unrefined_claimable": True})
     fitted = calibrate_success.calibrate_exit(rows, VerificationConfig())
     assert fitted.fast_exit and 0.0 < fitted.exit_threshold < 1.0
     outcomes = calibrate_success.flag_outcomes(rows, fitted)
