@@ -203,16 +203,15 @@ def bundled_model_id(model_dir: Path | None = None, without_calibration: bool = 
     Derived from its manifest without the descriptive parts (provenance, training config):
     the ONNX files' SHA-256 checksums, every setting the runtime reads from it (geometry,
     normalization, matching), and the runtime configuration it resolves to (its "runtime"
-    section, e.g. the success-flag calibration, over the code's defaults). So retraining,
+    section, e.g. the success-flag calibration, over the code's defaults:
+    ``ModelManifest.runtime_config``). So retraining,
     re-exporting or recalibrating the model changes it, and so does a changed runtime default.
     With ``without_calibration``, the verification settings ("runtime" -> "verification") are
     left out: the identity of the matches, which a recalibration does not change.
     """
-    from logdesc_rt.config import RuntimeConfig
-
     manifest = read_manifest(Path(model_dir) if model_dir is not None else bundled_model_dir())
     used = {k: v for k, v in manifest.to_dict().items() if k not in ("provenance", "model_config")}
-    used["runtime"] = RuntimeConfig.from_dict(used.get("runtime") or {}).to_dict()
+    used["runtime"] = manifest.runtime_config().to_dict()
     if without_calibration:
         used["runtime"] = {k: v for k, v in used["runtime"].items() if k != "verification"}
     return sha256(json.dumps(used, sort_keys=True).encode()).hexdigest()[:12]

@@ -155,7 +155,7 @@ def _verified_result(
         chosen_estimator = config.estimator
         pose = dict(candidates or [])[chosen_estimator]
 
-    refined, icp_result = pose, None
+    refined, icp_result, claimable = pose, None, True
     if refinement.method is not None:
         report(f"refining: {refinement.method} ICP on the full clouds")
         with timed(timings, "refinement"):
@@ -174,8 +174,19 @@ def _verified_result(
     else:
         # The configured estimator's pose, as it is: right only if it is close to the
         # alignment verification found.
-        confidence = chosen.confidence if verifier.pose_within_verified(pose, chosen) else 0.0
+        claimable = verifier.pose_within_verified(pose, chosen)
+        confidence = chosen.confidence if claimable else 0.0
     success = bool(confidence >= threshold)
+    if success:
+        reason = None
+    elif not claimable:
+        reason = (
+            f"not verified: the pose from the matches lies more than {config.verification.same_pose_deg:g} degrees "
+            f"(or {config.verification.distance_fraction:.0%} of the pair's scale) from the alignment verification "
+            "found (confidence 0)"
+        )
+    else:
+        reason = f"not verified: confidence {confidence:.3f} is below the success threshold {threshold:.3f}"
     return _judged_result(
         pair, config, timings, distance, refined,
         icp_evaluation=icp_result if refinement.max_source_points == refinement.evaluation_points else None,
@@ -186,9 +197,7 @@ def _verified_result(
         success=success,
         confidence=float(confidence),
         verification=verification,
-        reason=None if success else (
-            f"not verified: confidence {confidence:.3f} is below the success threshold {threshold:.3f}"
-        ),
+        reason=reason,
     )
 
 

@@ -384,8 +384,9 @@ def test_the_model_id_changes_with_the_calibration_not_with_the_provenance(tmp_p
 
 
 def test_the_model_id_follows_the_runtime_configuration_the_model_resolves_to(tmp_path):
-    """A runtime setting changes the id whether it comes from the manifest or the code's
-    default: a manifest that states the default resolves to the same runtime, the same id."""
+    """The id is that of the runtime configuration a manifest resolves to: stating a code
+    default changes nothing, a setting that changes the runtime changes it, and a manifest
+    without a setting it predates (run without it) has the id of one that turns it off."""
     import shutil
 
     from logdesc_rt.config import VerificationConfig
@@ -394,16 +395,21 @@ def test_the_model_id_follows_the_runtime_configuration_the_model_resolves_to(tm
     model = tmp_path / "model"
     shutil.copytree(bundled_model_dir(), model)
     manifest = json.loads((model / "manifest.json").read_text())
-    verification = manifest["runtime"].setdefault("verification", {})
-    verification["verified_fallback_rmse"] = VerificationConfig().verified_fallback_rmse
+    verification = manifest["runtime"]["verification"]
+    assert "same_pose_deg" not in verification
+    verification["same_pose_deg"] = VerificationConfig().same_pose_deg
     (model / "manifest.json").write_text(json.dumps(manifest))
     assert common.bundled_model_id(model) == common.bundled_model_id()
     verification["verified_fallback_rmse"] = 0.0
     (model / "manifest.json").write_text(json.dumps(manifest))
-    assert common.bundled_model_id(model) != common.bundled_model_id()
+    turned_off = common.bundled_model_id(model)
+    assert turned_off != common.bundled_model_id()
     assert common.bundled_model_id(model, without_calibration=True) == common.bundled_model_id(
         without_calibration=True
     )
+    verification.pop("verified_fallback_rmse")
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert common.bundled_model_id(model) == turned_off
 
 
 def test_bundled_model_id_follows_the_onnx_files(tmp_path):

@@ -835,6 +835,7 @@ def test_register_returns_the_verified_pose_where_the_refit_strays_on_clouds_tha
     refit_only = Registrar(config=strict).register(demo_pair.source, demo_pair.target, refine=None)
     assert not np.array_equal(refit_only.transformation, chosen.verified_transformation)
     assert not refit_only.success and refit_only.confidence == 0.0
+    assert "from the alignment verification found" in refit_only.reason
 
 
 def test_the_held_out_flag_never_judges_a_pair_by_a_fit_on_its_own_shape(monkeypatch):
