@@ -159,6 +159,19 @@ def _model_copy(tmp_path, runtime: dict):
     return folder
 
 
+def _model_without(tmp_path, *keys: str) -> tuple:
+    """The bundled model's files in ``tmp_path`` with ``keys`` removed from its manifest's
+    verification settings (a manifest stored before those settings existed), and the settings
+    the bundled manifest stores. Every key must be there to remove."""
+    from logdesc_rt.network import bundled_model_dir
+
+    runtime = json.loads((bundled_model_dir() / "manifest.json").read_text())["runtime"]
+    stored = dict(runtime["verification"])
+    assert set(keys) <= set(stored), f"the bundled manifest lacks {set(keys) - set(stored)}"
+    runtime["verification"] = {key: value for key, value in stored.items() if key not in keys}
+    return _model_copy(tmp_path, runtime), stored
+
+
 def test_the_models_runtime_defaults_come_from_its_manifest(tmp_path, demo_pair):
     """A model's manifest carries its runtime defaults (its success-flag calibration among
     them); a dict overrides them key by key, a RuntimeConfig keeps the model's verification."""
@@ -337,17 +350,9 @@ def test_a_calibration_stored_without_its_candidates_keeps_the_four_of_its_day(t
     """v3's manifest holds weights and a threshold but no candidate set: it was fitted with
     four estimators, and its ``agreement`` feature counts among them, so "core" (added later,
     in today's default set) must not join its candidates."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
     from logdesc_rt.network import LEGACY_CANDIDATES
 
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    manifest["runtime"]["verification"].pop("candidates")
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, _ = _model_without(tmp_path, "candidates")
     assert Registrar(model).config.verification.candidates == LEGACY_CANDIDATES
     assert "core" in VerificationConfig().candidates  # today's default set differs
 
@@ -506,18 +511,10 @@ def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
     """A manifest calibrated without the second look holds no second-look settings: its flag was
     fitted without turn-overs as rivals, so the model runs without the second look; the shipped
     manifest stores its own settings."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
-
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    assert manifest["runtime"]["verification"]["turn_over_axes"] == 6
-    for key in ("turn_over_axes", "second_consensus", "descriptor_consensus", "refit_spacings"):
-        manifest["runtime"]["verification"].pop(key, None)
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, stored = _model_without(
+        tmp_path, "turn_over_axes", "second_consensus", "descriptor_consensus", "refit_spacings"
+    )
+    assert stored["turn_over_axes"] == 6
     verification = Registrar(model).config.verification
     assert verification.turn_over_axes == 0 and verification.second_consensus == ()
     assert verification.descriptor_consensus == () and verification.refit_spacings == 0.0
@@ -527,16 +524,7 @@ def test_a_calibration_stored_before_the_second_look_runs_without_it(tmp_path):
 def test_a_calibration_stored_before_the_descriptor_candidates_runs_without_them(tmp_path):
     """A manifest fitted with the second look but before the descriptors' candidates keeps the
     second look and leaves the descriptors' candidates out (its ``agreement`` never counted them)."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
-
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    manifest["runtime"]["verification"].pop("descriptor_consensus", None)
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, _ = _model_without(tmp_path, "descriptor_consensus")
     verification = Registrar(model).config.verification
     assert verification.turn_over_axes == 6 and verification.descriptor_consensus == ()
 
@@ -544,17 +532,8 @@ def test_a_calibration_stored_before_the_descriptor_candidates_runs_without_them
 def test_a_calibration_stored_before_the_coarse_refit_returns_the_estimators_pose(tmp_path):
     """A manifest without ``refit_spacings`` returns the estimator's own pose without ICP (as
     when it was fitted) and keeps every other setting; the shipped manifest stores its own."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
-
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    assert manifest["runtime"]["verification"]["refit_spacings"] > 0
-    manifest["runtime"]["verification"].pop("refit_spacings")
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, stored = _model_without(tmp_path, "refit_spacings")
+    assert stored["refit_spacings"] > 0
     verification = Registrar(model).config.verification
     assert verification.refit_spacings == 0.0 and verification.descriptor_consensus == ("ransac",)
 
@@ -563,17 +542,8 @@ def test_a_calibration_stored_before_the_verified_fallback_runs_without_it(tmp_p
     """A manifest without ``verified_fallback_rmse`` (fitted when a straying re-fit was never
     replaced) runs without the fallback and keeps every other setting; the shipped manifest
     stores its own."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
-
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    assert manifest["runtime"]["verification"]["verified_fallback_rmse"] == 0.5
-    manifest["runtime"]["verification"].pop("verified_fallback_rmse")
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, stored = _model_without(tmp_path, "verified_fallback_rmse")
+    assert stored["verified_fallback_rmse"] == 0.5
     verification = Registrar(model).config.verification
     assert verification.verified_fallback_rmse == 0.0 and verification.refit_plane_steps == 3
 
@@ -582,17 +552,8 @@ def test_a_calibration_stored_before_the_plane_steps_returns_the_plain_refit(tmp
     """A manifest without ``refit_plane_steps`` (calibrated before the plane steps existed) returns the SVD re-fit
     without ICP, as when its numbers were measured; the shipped manifest stores 3 steps, and
     its pose without ICP differs from the plain re-fit's."""
-    import shutil
-    from pathlib import Path
-
-    import logdesc_rt
-
-    model = tmp_path / "model"
-    shutil.copytree(Path(logdesc_rt.__file__).parent / "models", model)
-    manifest = json.loads((model / "manifest.json").read_text())
-    assert manifest["runtime"]["verification"]["refit_plane_steps"] == 3
-    manifest["runtime"]["verification"].pop("refit_plane_steps")
-    (model / "manifest.json").write_text(json.dumps(manifest))
+    model, stored = _model_without(tmp_path, "refit_plane_steps")
+    assert stored["refit_plane_steps"] == 3
     legacy = Registrar(model)
     assert legacy.config.verification.refit_plane_steps == 0 and legacy.config.verification.refit_spacings == 2.0
     shipped = Registrar()
