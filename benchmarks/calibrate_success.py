@@ -321,13 +321,11 @@ def pair_hypotheses(path: Path, config, with_init: bool = False) -> list[dict]:
     rows = []
     for hypothesis in verified.hypotheses:
         # What register() returns without ICP were this hypothesis chosen.
+        refit = coarse_pose(
+            hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
+        )
         unrefined, claimable = pose_without_icp(
-            hypothesis,
-            refit := coarse_pose(
-                hypothesis, source_user, target_user, data["confidence"], data["target"][target_index], config
-            ),
-            verifier.pose_within_verified(refit, hypothesis),
-            config,
+            hypothesis, refit, verifier.pose_within_verified(refit, hypothesis), config
         )
         rows.append({
             "pair": f"{INIT_GROUP if with_init else path.parent.name}/{path.stem}",
